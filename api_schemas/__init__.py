@@ -1,0 +1,1 @@
+"""Pydantic models: the contract between client, API and worker."""

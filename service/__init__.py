@@ -1,0 +1,1 @@
+"""FastAPI app, HTTP client, the `symgs` command line and the dashboard."""

@@ -1,0 +1,49 @@
+"""The `symgs` command line. Each command group lives in its own module and registers its subcommands here."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Modules that define `register(subparsers)`; each subcommand sets `func(args) -> int` as its handler.
+COMMAND_MODULES = [
+    "service.cmd_scene",  # info, render
+    "service.cmd_detect",  # detect
+    "service.cmd_codec",  # compress, decompress, evaluate, bench
+    "service.cmd_service",  # serve, worker, submit, status, fetch, demo
+]
+
+
+class CliError(Exception):
+    """A user-facing error: printed without a traceback, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="symgs", description="SymGS: symmetry-aware 3D Gaussian Splatting compression")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # command group not present in this build
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except CliError as exc:
+        print(f"symgs {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

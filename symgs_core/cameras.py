@@ -1,0 +1,142 @@
+"""Pinhole cameras, OpenCV convention: world-to-camera (R, t), x right, y down, z forward; pixel centres at +0.5."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+COORDINATE_CONVENTION = "opencv: world-to-camera extrinsics, camera x right, y down, z forward"
+
+
+@dataclass
+class Camera:
+    """A pinhole camera.
+
+    R [3, 3] and t [3] map world points to camera space: x_cam = R x_world + t.
+    fx, fy, cx, cy in pixels; width, height in pixels.
+    """
+
+    R: Tensor
+    t: Tensor
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if tuple(self.R.shape) != (3, 3) or tuple(self.t.shape) != (3,):
+            raise ValueError(f"camera R must be (3, 3) and t (3,), got {tuple(self.R.shape)}, {tuple(self.t.shape)}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @property
+    def K(self) -> Tensor:
+        """Intrinsics [3, 3]."""
+        return torch.tensor(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=self.R.dtype, device=self.R.device
+        )
+
+    @property
+    def viewmat(self) -> Tensor:
+        """World-to-camera [4, 4]."""
+        m = torch.eye(4, dtype=self.R.dtype, device=self.R.device)
+        m[:3, :3] = self.R
+        m[:3, 3] = self.t
+        return m
+
+    @property
+    def center(self) -> Tensor:
+        """Camera centre in world coordinates [3]."""
+        return -self.R.T @ self.t
+
+    def to(self, device: torch.device | str) -> Camera:
+        return Camera(self.R.to(device), self.t.to(device), self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.name)
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The same view at another resolution (intrinsics scaled)."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(self.R, self.t, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.name)
+
+    @staticmethod
+    def look_at(
+        eye: Tensor | tuple[float, float, float],
+        target: Tensor | tuple[float, float, float],
+        up: Tensor | tuple[float, float, float] = (0.0, 0.0, 1.0),
+        fov_deg: float = 50.0,
+        width: int = 256,
+        height: int = 256,
+        name: str = "",
+    ) -> Camera:
+        """A camera at ``eye`` looking at ``target``; ``fov_deg`` is the horizontal field of view."""
+        eye_t = torch.as_tensor(eye, dtype=torch.float64)
+        forward = torch.as_tensor(target, dtype=torch.float64) - eye_t
+        if forward.norm() == 0:
+            raise ValueError("look_at: eye and target coincide")
+        forward = forward / forward.norm()
+        up_t = torch.as_tensor(up, dtype=torch.float64)
+        right = torch.linalg.cross(forward, up_t)
+        if right.norm() < 1e-9:
+            raise ValueError("look_at: up is parallel to the viewing direction")
+        right = right / right.norm()
+        down = torch.linalg.cross(forward, right)
+        R = torch.stack([right, down, forward])
+        t = -R @ eye_t
+        if not 0.0 < fov_deg < 180.0:
+            raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
+        fx = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
+        return Camera(R.float(), t.float(), fx, fx, width / 2.0, height / 2.0, width, height, name)
+
+
+def scene_bounds(means: Tensor) -> tuple[Tensor, float]:
+    """Robust centre (median) [3] and radius (95th percentile distance) of a point set [N, 3]."""
+    if means.shape[0] == 0:
+        return torch.zeros(3), 1.0
+    center = means.median(dim=0).values
+    dist = (means - center).norm(dim=-1)
+    radius = float(torch.quantile(dist.float(), 0.95)) if dist.numel() > 1 else 0.0
+    return center, max(radius, 1e-6)
+
+
+def fibonacci_directions(count: int) -> Tensor:
+    """``count`` unit vectors [count, 3] spread evenly over the sphere."""
+    i = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / count
+    r = torch.sqrt(torch.clamp(1.0 - z * z, min=0.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+def orbit_cameras(
+    center: Tensor,
+    radius: float,
+    count: int,
+    width: int = 256,
+    height: int = 256,
+    fov_deg: float = 50.0,
+    margin: float = 1.15,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+) -> list[Camera]:
+    """``count`` cameras spread over a sphere around ``center`` [3], each framing a ball of ``radius``."""
+    distance = margin * radius / math.sin(math.radians(fov_deg) / 2.0)
+    up_t = torch.tensor(up, dtype=torch.float64)
+    cams = []
+    for i, d in enumerate(fibonacci_directions(count)):
+        # Near the poles the world up is parallel to the view: use another up there.
+        cam_up = up_t if abs(float(d @ up_t)) < 0.99 else torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        eye = center.to(torch.float64) + distance * d
+        cams.append(Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}"))
+    return cams
+
+
+def scene_cameras(means: Tensor, count: int, width: int = 256, height: int = 256, fov_deg: float = 50.0) -> list[Camera]:
+    """Cameras over the bounding sphere of a scene that came without images."""
+    center, radius = scene_bounds(means.detach().cpu())
+    return orbit_cameras(center, radius, count, width, height, fov_deg)

@@ -1,0 +1,104 @@
+"""Mirror planes and the exact reflection of a Gaussian set across one.
+
+A plane is a unit normal n and an offset g: the points x with n.x = g. H = I - 2 n n^T.
+  mean:     x' = x - 2 (n.x - g) n
+  rotation: H R = -R_pi(n) R with R_pi(n) = 2 n n^T - I, so the reflected covariance H R S^2 R^T H equals
+            R' S^2 R'^T for the proper rotation R' = R_pi(n) R; as quaternions q' = (0, n) (x) q.
+  SH:       c'(d) = c(H d), band by band (see ``sh.reflect_sh_rest``).
+Scales and opacities are unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .scene import GaussianScene
+from .sh import reflect_sh_rest
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A mirror plane n.x = offset; ``normal`` is a unit 3-vector (a tuple so planes are hashable and JSON-able)."""
+
+    normal: tuple[float, float, float]
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = torch.tensor(self.normal, dtype=torch.float64)
+        norm = float(n.norm())
+        if not abs(norm - 1.0) < 1e-4:
+            raise ValueError(f"plane normal must be unit length, got norm {norm}")
+
+    @staticmethod
+    def from_tensor(normal: Tensor, offset: Tensor | float) -> Plane:
+        n = normal.detach().to(torch.float64).flatten()
+        norm = n.norm()
+        if not torch.isfinite(norm) or norm == 0:
+            raise ValueError(f"plane normal must be finite and non-zero, got {normal.tolist()}")
+        g = float(offset) / float(norm)
+        n = n / norm
+        return Plane((float(n[0]), float(n[1]), float(n[2])), g)
+
+    def canonical(self) -> Plane:
+        """The same plane with its normal in the hemisphere whose largest-magnitude component is positive."""
+        n = self.normal
+        axis = max(range(3), key=lambda i: abs(n[i]))
+        if n[axis] >= 0:
+            return self
+        return Plane((-n[0], -n[1], -n[2]), -self.offset)
+
+    def tensor(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+        return (
+            torch.tensor(self.normal, device=device, dtype=dtype),
+            torch.tensor(self.offset, device=device, dtype=dtype),
+        )
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        n, g = self.tensor(points.device, points.dtype)
+        return points @ n - g
+
+
+def householder(normal: Tensor) -> Tensor:
+    """H = I - 2 n n^T [3, 3] for a unit normal [3]."""
+    return torch.eye(3, dtype=normal.dtype, device=normal.device) - 2.0 * torch.outer(normal, normal)
+
+
+def reflect_points(points: Tensor, normal: Tensor, offset: Tensor | float) -> Tensor:
+    """Mirror images [N, 3] of ``points`` [N, 3] across the plane n.x = offset (n unit)."""
+    d = points @ normal - offset
+    return points - 2.0 * d[:, None] * normal
+
+
+def reflect_quats(quats: Tensor, normal: Tensor) -> Tensor:
+    """Quaternions [N, 4] (w, x, y, z) of the reflected Gaussians: (0, n) (x) q = (-n.v, w n + n x v)."""
+    w, v = quats[:, :1], quats[:, 1:]
+    n = normal.expand_as(v)
+    return torch.cat([-(v @ normal)[:, None], w * n + torch.linalg.cross(n, v, dim=-1)], dim=-1)
+
+
+def _unit(normal: Tensor, offset: Tensor | float) -> tuple[Tensor, Tensor | float]:
+    """Normalise a plane given by any non-zero normal; differentiable so optimisers may move it freely."""
+    norm = normal.norm()
+    return normal / norm, offset / norm
+
+
+def reflect(scene: GaussianScene, normal: Tensor, offset: Tensor | float) -> GaussianScene:
+    """The scene mirrored across the plane normal.x = offset; differentiable in the scene and the plane.
+
+    ``normal`` [3] need not be unit: the plane is normalised first (the offset with it).
+    """
+    if normal.shape != (3,):
+        raise ValueError(f"normal must have shape (3,), got {tuple(normal.shape)}")
+    normal = normal.to(scene.means.dtype)
+    n, g = _unit(normal, offset)
+    return GaussianScene(
+        means=reflect_points(scene.means, n, g),
+        quats=reflect_quats(scene.quats, n),
+        scales=scene.scales,
+        opacities=scene.opacities,
+        sh_dc=scene.sh_dc,
+        sh_rest=reflect_sh_rest(scene.sh_rest, householder(n)),
+    )

@@ -1,0 +1,1 @@
+"""Celery app, tasks, job store and artifact storage."""
