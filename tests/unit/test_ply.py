@@ -1,0 +1,288 @@
+"""PLY reading and writing: layout, round trips, repairs and hostile files."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+
+from symgs_core.ply import OPACITY_LOGIT_MAX, PlyError, graphdeco_properties, load_scene, read_scene, save_scene
+from symgs_core.scene import SH_REST_COUNT, GaussianScene
+from tests.conftest import shared_file
+
+
+def random_columns(n: int, degree: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random float32 values for every graphdeco property, keyed by property name."""
+    rng = np.random.default_rng(seed)
+    cols = {name: rng.normal(size=n).astype(np.float32) for name in graphdeco_properties(degree)}
+    for name in ("nx", "ny", "nz"):
+        cols[name] = np.zeros(n, dtype=np.float32)
+    return cols
+
+
+def write_ply(path: Path, cols: dict[str, np.ndarray], *, text: bool = False, byte_order: str = "<") -> Path:
+    """A PLY with the properties of ``cols`` in the dict's order."""
+    n = len(next(iter(cols.values())))
+    swap = lambda code: code.replace("<", byte_order).replace(">", byte_order)
+    dtype = [(name, swap(np.asarray(v).dtype.str)) for name, v in cols.items()]
+    rows = np.empty(n, dtype=dtype)
+    for name, v in cols.items():
+        rows[name] = v
+    PlyData([PlyElement.describe(rows, "vertex")], text=text, byte_order=byte_order).write(str(path))
+    return path
+
+
+def expected_scene(cols: dict[str, np.ndarray], degree: int) -> GaussianScene:
+    """The scene ``cols`` describes, assembled independently of the reader (channel-major f_rest)."""
+    k = SH_REST_COUNT[degree]
+    stack = lambda names: torch.from_numpy(np.stack([cols[n] for n in names], axis=1).astype(np.float32))
+    rest = torch.zeros(len(cols["x"]), k, 3)
+    for c in range(3):
+        for j in range(k):
+            rest[:, j, c] = torch.from_numpy(cols[f"f_rest_{c * k + j}"].astype(np.float32))
+    return GaussianScene(
+        means=stack(["x", "y", "z"]),
+        quats=stack([f"rot_{i}" for i in range(4)]),
+        scales=stack([f"scale_{i}" for i in range(3)]),
+        opacities=torch.from_numpy(cols["opacity"].astype(np.float32)),
+        sh_dc=stack([f"f_dc_{i}" for i in range(3)]),
+        sh_rest=rest,
+    )
+
+
+def assert_bit_equal(a: GaussianScene, b: GaussianScene) -> None:
+    for name, ta in a.tensors().items():
+        tb = b.tensors()[name]
+        assert ta.shape == tb.shape, name
+        assert ta.numpy().tobytes() == tb.contiguous().numpy().tobytes(), name
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_graphdeco_round_trip_is_byte_identical(tmp_path: Path, degree: int) -> None:
+    cols = random_columns(57, degree, seed=degree)
+    original = write_ply(tmp_path / "in.ply", cols)
+    scene, report = read_scene(original)
+    assert report.count == 57 and report.sh_degree == degree and report.repairs == {}
+    assert report.properties == graphdeco_properties(degree)
+    assert report.ignored == ["nx", "ny", "nz"]
+    assert_bit_equal(scene, expected_scene(cols, degree))
+    save_scene(scene, tmp_path / "out.ply")
+    assert (tmp_path / "out.ply").read_bytes() == original.read_bytes()
+
+
+def test_save_writes_graphdeco_order_and_channel_major_rest(tmp_path: Path) -> None:
+    g = torch.Generator().manual_seed(1)
+    n, k = 5, 8
+    scene = GaussianScene(
+        torch.randn(n, 3, generator=g),
+        torch.randn(n, 4, generator=g),
+        torch.randn(n, 3, generator=g),
+        torch.randn(n, generator=g),
+        torch.randn(n, 3, generator=g),
+        torch.randn(n, k, 3, generator=g),
+    )
+    save_scene(scene, tmp_path / "s.ply", comments=("made by a test",))
+    ply = PlyData.read(str(tmp_path / "s.ply"))
+    v = ply["vertex"]
+    assert [p.name for p in v.properties] == graphdeco_properties(2)
+    assert ply.comments == ["made by a test"]
+    assert np.all(v["nx"] == 0) and np.all(v["nz"] == 0)
+    # f_rest_{c*K + j} is coefficient j+1 of channel c
+    assert np.array_equal(v["f_rest_9"], scene.sh_rest[:, 1, 1].numpy())
+    assert np.array_equal(v["f_rest_23"], scene.sh_rest[:, 7, 2].numpy())
+    assert np.array_equal(v["rot_0"], scene.quats[:, 0].numpy())
+
+
+def test_any_property_order_extra_properties_and_doubles(tmp_path: Path) -> None:
+    cols = random_columns(40, 1, seed=3)
+    rng = np.random.default_rng(4)
+    names = list(cols)
+    rng.shuffle(names)
+    shuffled = {name: cols[name] for name in names if name not in ("nx", "ny", "nz")}
+    shuffled["red"] = rng.integers(0, 255, size=40).astype(np.uint8)
+    shuffled["scale_1"] = shuffled["scale_1"].astype(np.float64)
+    shuffled["confidence"] = rng.normal(size=40)
+    scene, report = read_scene(write_ply(tmp_path / "odd.ply", shuffled))
+    assert report.properties == list(shuffled)
+    assert sorted(report.ignored) == ["confidence", "red"]
+    assert_bit_equal(scene, expected_scene(cols, 1))
+
+
+def test_ascii_and_big_endian_files_read_the_same(tmp_path: Path) -> None:
+    cols = random_columns(12, 2, seed=5)
+    reference = load_scene(write_ply(tmp_path / "le.ply", cols))
+    assert_bit_equal(load_scene(write_ply(tmp_path / "be.ply", cols, byte_order=">")), reference)
+    ascii_scene, report = read_scene(write_ply(tmp_path / "ascii.ply", cols, text=True))
+    assert report.format == "ascii"
+    assert_bit_equal(ascii_scene, reference)
+
+
+def test_infinite_opacities_and_zero_quaternions_are_repaired_and_reported(tmp_path: Path) -> None:
+    cols = random_columns(10, 0, seed=6)
+    cols["opacity"][[1, 4, 7]] = [np.inf, np.inf, -np.inf]
+    for i in range(4):
+        cols[f"rot_{i}"][[2, 3]] = 0.0
+    cols["rot_0"][5], cols["rot_1"][5], cols["rot_2"][5], cols["rot_3"][5] = 2.0, 0.5, 0.0, 0.0  # unnormalised: kept
+    scene, report = read_scene(write_ply(tmp_path / "repair.ply", cols))
+    assert report.repairs == {
+        "opacity_pos_inf_clamped": 2,
+        "opacity_neg_inf_clamped": 1,
+        "zero_quaternion_set_to_identity": 2,
+    }
+    limit = math.log(511.0)
+    assert scene.opacities[1].item() == pytest.approx(limit, abs=1e-6)
+    assert torch.sigmoid(scene.opacities[1]).item() == pytest.approx(1 - 1 / 512, abs=1e-7)
+    assert scene.opacities[7].item() == pytest.approx(-limit, abs=1e-6)
+    assert scene.quats[2].tolist() == [1.0, 0.0, 0.0, 0.0] == scene.quats[3].tolist()
+    assert scene.quats[5].tolist() == [2.0, 0.5, 0.0, 0.0]
+    untouched = [0, 2, 3, 5, 6, 8, 9]
+    assert torch.equal(scene.opacities[untouched], torch.from_numpy(cols["opacity"][untouched]))
+
+
+@pytest.mark.parametrize("name", ["x", "f_dc_2", "f_rest_5", "scale_0", "rot_3", "opacity"])
+def test_nan_is_refused_naming_the_property(tmp_path: Path, name: str) -> None:
+    cols = random_columns(8, 1, seed=7)
+    cols[name][3] = np.nan
+    with pytest.raises(PlyError, match=name) as err:
+        read_scene(write_ply(tmp_path / "nan.ply", cols))
+    assert err.value.code == "non_finite"
+
+
+@pytest.mark.parametrize("name", ["y", "scale_2", "f_rest_1"])
+def test_infinity_outside_opacity_is_refused(tmp_path: Path, name: str) -> None:
+    cols = random_columns(8, 1, seed=8)
+    cols[name][0] = -np.inf
+    with pytest.raises(PlyError, match=name) as err:
+        read_scene(write_ply(tmp_path / "inf.ply", cols))
+    assert err.value.code == "non_finite"
+
+
+def test_missing_properties_are_named(tmp_path: Path) -> None:
+    cols = random_columns(4, 0)
+    del cols["opacity"], cols["rot_2"]
+    with pytest.raises(PlyError, match="opacity, rot_2") as err:
+        read_scene(write_ply(tmp_path / "missing.ply", cols))
+    assert err.value.code == "missing_property"
+
+
+@pytest.mark.parametrize(("count", "drop"), [(7, None), (24, "f_rest_3"), (12, None)])
+def test_wrong_f_rest_counts_are_refused(tmp_path: Path, count: int, drop: str | None) -> None:
+    cols = random_columns(4, 0)
+    for i in range(count):
+        cols[f"f_rest_{i}"] = np.zeros(4, dtype=np.float32)
+    if drop:
+        cols[f"f_rest_{count}"] = cols.pop(drop)  # 24 properties, but numbered with a gap
+    with pytest.raises(PlyError) as err:
+        read_scene(write_ply(tmp_path / "rest.ply", cols))
+    assert err.value.code == "bad_sh_count"
+
+
+def test_header_claiming_more_vertices_than_the_file_holds(tmp_path: Path) -> None:
+    path = write_ply(tmp_path / "ok.ply", random_columns(100, 0))
+    data = path.read_bytes()
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(data[:-1])
+    with pytest.raises(PlyError, match="100 vertices") as err:
+        read_scene(cut)
+    assert err.value.code == "truncated"
+    # A billion Gaussians claimed in a few bytes: refused from the header, nothing allocated.
+    hostile = tmp_path / "hostile.ply"
+    hostile.write_bytes(data.replace(b"element vertex 100", b"element vertex 1000000000"))
+    with pytest.raises(PlyError) as err:
+        read_scene(hostile)
+    assert err.value.code == "truncated"
+
+
+def test_truncated_ascii_file(tmp_path: Path) -> None:
+    path = write_ply(tmp_path / "a.ply", random_columns(50, 0), text=True)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(PlyError) as err:
+        read_scene(path)
+    assert err.value.code == "truncated"
+
+
+def test_gaussian_limit_is_checked_from_the_header(tmp_path: Path) -> None:
+    path = write_ply(tmp_path / "s.ply", random_columns(30, 0))
+    assert len(read_scene(path, max_gaussians=30)[0]) == 30
+    with pytest.raises(PlyError, match="30 Gaussians exceed the limit of 29") as err:
+        read_scene(path, max_gaussians=29)
+    assert err.value.code == "too_many_gaussians"
+
+
+@pytest.mark.parametrize(
+    ("content", "code"),
+    [
+        (b"", "not_ply"),
+        (b"\x89PNG\r\n\x1a\n", "not_ply"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n", "not_ply"),
+        (b"ply\nformat binary_middle_endian 1.0\nelement vertex 0\nend_header\n", "unsupported_format"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n", "malformed"),
+        (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int idx\nend_header\n", "missing_property"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quaternion q\nend_header\n", "malformed"),
+    ],
+)
+def test_not_a_scene(tmp_path: Path, content: bytes, code: str) -> None:
+    path = tmp_path / "bad.ply"
+    path.write_bytes(content)
+    with pytest.raises(PlyError) as err:
+        read_scene(path)
+    assert err.value.code == code
+    assert isinstance(err.value, ValueError)
+
+
+def test_integer_typed_required_property_is_refused(tmp_path: Path) -> None:
+    cols = random_columns(4, 0)
+    cols["opacity"] = np.arange(4, dtype=np.int32)
+    with pytest.raises(PlyError, match="'opacity' is int") as err:
+        read_scene(write_ply(tmp_path / "int.ply", cols))
+    assert err.value.code == "unsupported_format"
+
+
+def test_empty_scene_round_trip(tmp_path: Path) -> None:
+    save_scene(GaussianScene.empty(3), tmp_path / "e.ply")
+    scene, report = read_scene(tmp_path / "e.ply")
+    assert len(scene) == 0 and scene.sh_degree == 3 and report.count == 0
+
+
+def test_fox_repairs_match_the_sanitised_copy() -> None:
+    # fox.ply: no normals, non-graphdeco order, +inf opacities; the data's sanitised copy clamps them the same way.
+    raw, report = read_scene(shared_file("fox_cc0_mujoco_warp/fox.ply"))
+    sanitised = load_scene(shared_file("fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply"))
+    assert report.repairs == {"opacity_pos_inf_clamped": 37}
+    assert report.ignored == []
+    assert_bit_equal(raw, sanitised)
+    assert float(raw.opacities.max()) == pytest.approx(OPACITY_LOGIT_MAX)
+
+
+@pytest.mark.parametrize(
+    ("relative", "count", "degree"),
+    [
+        ("kacytran_try_iter7000/point_cloud.ply", 9080, 3),
+        ("playbot_cc_by_sa3d/playbot_lod3_31k_sh2.ply", 31000, 2),
+        ("donut_mipsplatting/donut_graphdeco_sh0.ply", 45624, 0),
+        ("padilla_captures_cc_by/plant_113k_sh0.ply", 113648, 0),
+    ],
+)
+def test_real_graphdeco_files_round_trip_byte_identical(tmp_path: Path, relative: str, count: int, degree: int) -> None:
+    path = shared_file(relative)
+    scene, report = read_scene(path)
+    assert (report.count, report.sh_degree, report.repairs) == (count, degree, {})
+    save_scene(scene, tmp_path / "out.ply", comments=tuple(report.comments))
+    assert (tmp_path / "out.ply").read_bytes() == path.read_bytes()
+
+
+def test_every_real_scene_loads(shared_data: Path) -> None:
+    scenes = [p for p in sorted(shared_data.rglob("*.ply")) if p.name != "points3D.ply"]
+    assert len(scenes) >= 9
+    for path in scenes:
+        scene = load_scene(path)
+        assert len(scene) > 0 and bool(torch.isfinite(scene.opacities).all()), path.name
+    # A COLMAP point cloud is a PLY but not a Gaussian scene.
+    with pytest.raises(PlyError, match="f_dc_0") as err:
+        read_scene(shared_data / "snowmiku_plush_capture_mit/sparse/0/points3D.ply")
+    assert err.value.code == "missing_property"
