@@ -1,0 +1,321 @@
+"""Encoding and decoding of a whole `.symgs` archive: the stored set, the mirror planes, the level bits, metadata.
+
+Header (JSON object, format version 1; every key required, no others):
+    count                   int, stored Gaussians N
+    sh_degree               int, 0..3
+    coordinate_convention   str, ``cameras.COORDINATE_CONVENTION``
+    codec                   str, the archive codec that wrote the file (informational: sections name their own)
+    planes                  [{"normal": [x, y, z], "offset": g}], level 0 first; unit normals, finite
+    sections                [{"name", "codec", "offset", "length", "raw_length", "crc32", "params"}], exactly
+                            ``SECTION_NAMES`` in that order; offsets count from the end of the header
+    meta                    object, the caller's metadata, returned as given
+Shapes follow from the header alone: attributes [N, ...] as in ``GaussianScene``, bits [N, len(planes)].
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras import COORDINATE_CONVENTION
+from ..hierarchy import expand_planes
+from ..mirror import Plane
+from ..scene import SH_REST_COUNT, GaussianScene
+from . import container
+from .errors import ArchiveError
+from .registry import SECTION_NAMES, archive_codec, section_codec
+from .section import SectionCodec
+
+_HEADER_KEYS = {"count", "sh_degree", "coordinate_convention", "codec", "planes", "sections", "meta"}
+_SECTION_KEYS = {"name", "codec", "offset", "length", "raw_length", "crc32", "params"}
+_MAX_NAME = 64
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """What a reader accepts before it allocates anything; a file asking for more is refused (limit_exceeded)."""
+
+    max_gaussians: int = 10_000_000  # stored
+    max_expanded_gaussians: int = 40_000_000  # after expansion through every level
+    max_levels: int = 32
+    max_header_bytes: int = 1 << 20
+    max_section_bytes: int = 1 << 31  # both stored and decoded size of one section
+
+
+@dataclass
+class ArchiveContents:
+    """Everything an archive holds. bits [|S|, L+1] bool, one column per plane (level 0 first)."""
+
+    stored: GaussianScene
+    planes: list[Plane]
+    bits: Tensor
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        expected = (len(self.stored), len(self.planes))
+        if tuple(self.bits.shape) != expected or self.bits.dtype != torch.bool:
+            raise ValueError(
+                f"bits must be a bool tensor of shape {expected} (stored Gaussians, planes), "
+                f"got {self.bits.dtype} of shape {tuple(self.bits.shape)}"
+            )
+        if not all(isinstance(p, Plane) for p in self.planes):
+            raise ValueError(f"planes must be Plane objects, got {[type(p).__name__ for p in self.planes]}")
+        if not isinstance(self.meta, dict):
+            raise ValueError(f"meta must be a dict, got {type(self.meta).__name__}")
+
+    def permuted(self, perm: Tensor) -> ArchiveContents:
+        """The same archive with the stored set and its bit rows in the order ``perm`` [|S|] (see ``coding_order``)."""
+        return ArchiveContents(self.stored.select(perm), list(self.planes), self.bits[perm], dict(self.meta))
+
+
+def _section_arrays(contents: ArchiveContents) -> dict[str, np.ndarray]:
+    arrays = {k: v.detach().cpu().contiguous().numpy() for k, v in contents.stored.tensors().items()}
+    arrays["bits"] = contents.bits.detach().cpu().contiguous().numpy()
+    return arrays
+
+
+def _plain_json(meta: dict[str, Any]) -> None:
+    """ValueError unless ``meta`` survives JSON unchanged (so decode gives back exactly what was encoded)."""
+    try:
+        again = json.loads(json.dumps(meta, allow_nan=False))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"meta must be plain JSON (finite numbers, str keys): {exc}") from exc
+    if again != meta:
+        raise ValueError("meta must be plain JSON: dict, list, str, int, float, bool, None (tuples become lists)")
+
+
+def encode_archive(contents: ArchiveContents, *, codec: str = "lossless") -> bytes:
+    """The `.symgs` bytes of ``contents``, each section written by archive codec ``codec`` (see ``registry``)."""
+    codecs = archive_codec(codec)
+    _plain_json(contents.meta)
+    arrays = _section_arrays(contents)
+    table, payloads, offset = [], [], 0
+    for name in SECTION_NAMES:
+        coded = codecs[name].encode(arrays[name])
+        table.append(
+            {
+                "name": name,
+                "codec": codecs[name].name,
+                "offset": offset,
+                "length": len(coded.payload),
+                "raw_length": coded.raw_length,
+                "crc32": container.crc32(coded.payload),
+                "params": coded.params,
+            }
+        )
+        payloads.append(coded.payload)
+        offset += len(coded.payload)
+    header = {
+        "count": len(contents.stored),
+        "sh_degree": contents.stored.sh_degree,
+        "coordinate_convention": COORDINATE_CONVENTION,
+        "codec": codec,
+        "planes": [{"normal": list(p.normal), "offset": p.offset} for p in contents.planes],
+        "sections": table,
+        "meta": contents.meta,
+    }
+    data = container.frame(header, b"".join(payloads))
+    header_bytes = len(data) - container.PREFIX_SIZE - offset
+    if header_bytes > DecodeLimits().max_header_bytes:
+        raise ValueError(f"archive header of {header_bytes} bytes exceeds what readers accept; shrink meta")
+    return data
+
+
+# ----------------------------------------------------------------------------------------------- validation
+
+
+def _bad(message: str) -> ArchiveError:
+    return ArchiveError("bad_header", message)
+
+
+def _count(value: Any, what: str) -> int:
+    """A non-negative JSON integer (bool is not one)."""
+    if type(value) is not int or value < 0:
+        raise _bad(f"{what} must be a non-negative integer, got {value!r:.80}")
+    return value
+
+
+def _number(value: Any, what: str) -> float:
+    if type(value) not in (int, float) or not math.isfinite(value):
+        raise _bad(f"{what} must be a finite number, got {value!r:.80}")
+    return float(value)
+
+
+def _name(value: Any, what: str) -> str:
+    if type(value) is not str or not 0 < len(value) <= _MAX_NAME:
+        raise _bad(f"{what} must be a string of 1..{_MAX_NAME} characters, got {value!r:.80}")
+    return value
+
+
+def _keys(obj: Any, keys: set[str], what: str) -> dict[str, Any]:
+    if not isinstance(obj, dict) or set(obj) != keys:
+        got = sorted(obj) if isinstance(obj, dict) else type(obj).__name__
+        raise _bad(f"{what} must be an object with keys {sorted(keys)}, got {got}")
+    return obj
+
+
+def _planes(value: Any, limits: DecodeLimits) -> list[Plane]:
+    if not isinstance(value, list):
+        raise _bad(f"planes must be a list, got {type(value).__name__}")
+    if len(value) > limits.max_levels:
+        raise ArchiveError("limit_exceeded", f"{len(value)} levels exceed the limit of {limits.max_levels}")
+    planes = []
+    for i, item in enumerate(value):
+        entry = _keys(item, {"normal", "offset"}, f"plane {i}")
+        normal = entry["normal"]
+        if not isinstance(normal, list) or len(normal) != 3:
+            raise _bad(f"plane {i}: normal must be a list of 3 numbers, got {normal!r:.80}")
+        n = tuple(_number(c, f"plane {i} normal") for c in normal)
+        offset = _number(entry["offset"], f"plane {i} offset")
+        try:
+            planes.append(Plane((n[0], n[1], n[2]), offset))
+        except ValueError as exc:
+            raise _bad(f"plane {i}: {exc}") from exc
+    return planes
+
+
+@dataclass(frozen=True)
+class _Section:
+    name: str
+    codec: SectionCodec
+    shape: tuple[int, ...]
+    start: int  # absolute offset in the file
+    length: int
+    raw_length: int
+    params: dict[str, Any]
+
+
+def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimits) -> list[_Section]:
+    if not isinstance(value, list) or [s.get("name") if isinstance(s, dict) else None for s in value] != list(
+        SECTION_NAMES
+    ):
+        raise _bad(f"sections must list exactly {list(SECTION_NAMES)} in that order")
+    sections = []
+    for entry in value:
+        _keys(entry, _SECTION_KEYS, f"section {entry['name']!r}")
+        name = entry["name"]
+        offset = _count(entry["offset"], f"section {name!r} offset")
+        length = _count(entry["length"], f"section {name!r} length")
+        raw_length = _count(entry["raw_length"], f"section {name!r} raw_length")
+        crc = _count(entry["crc32"], f"section {name!r} crc32")
+        if crc > 0xFFFFFFFF:
+            raise _bad(f"section {name!r} crc32 {crc} is not a 32-bit value")
+        if max(length, raw_length) > limits.max_section_bytes:
+            raise ArchiveError(
+                "limit_exceeded",
+                f"section {name!r}: {length} stored / {raw_length} decoded bytes exceed the limit of "
+                f"{limits.max_section_bytes}",
+            )
+        if not isinstance(entry["params"], dict):
+            raise _bad(f"section {name!r} params must be an object")
+        codec = section_codec(_name(entry["codec"], f"section {name!r} codec"), name)
+        codec.check(shapes[name], entry["params"], raw_length)
+        sections.append(_Section(name, codec, shapes[name], offset, length, raw_length, entry["params"]))
+    return sections
+
+
+def _layout(sections: list[_Section], body_start: int, size: int) -> list[_Section]:
+    """Sections must tile the body exactly: no gaps, no overlaps, nothing after the last, nothing past the end."""
+    placed, expected = [], 0
+    for s in sections:
+        if s.start != expected:
+            kind = "overlaps the previous section" if s.start < expected else "leaves a gap"
+            raise _bad(f"section {s.name!r} at offset {s.start} {kind} (expected offset {expected})")
+        expected += s.length
+        placed.append(_Section(s.name, s.codec, s.shape, body_start + s.start, s.length, s.raw_length, s.params))
+    if body_start + expected > size:
+        raise ArchiveError("truncated", f"{size} bytes: the sections end at byte {body_start + expected}")
+    if body_start + expected < size:
+        raise ArchiveError("trailing_data", f"{size - body_start - expected} bytes after the last section")
+    return placed
+
+
+def _validate(data: bytes, limits: DecodeLimits) -> tuple[dict[str, Any], list[Plane], list[_Section]]:
+    """Everything but the payloads' contents: prefix, header schema, limits, codecs, layout, checksums."""
+    header, body_start = container.unframe(data, limits.max_header_bytes)
+    _keys(header, _HEADER_KEYS, "header")
+    n = _count(header["count"], "count")
+    if n > limits.max_gaussians:
+        raise ArchiveError("limit_exceeded", f"{n} stored Gaussians exceed the limit of {limits.max_gaussians}")
+    degree = _count(header["sh_degree"], "sh_degree")
+    if degree not in SH_REST_COUNT:
+        raise _bad(f"sh_degree must be 0..3, got {degree}")
+    if header["coordinate_convention"] != COORDINATE_CONVENTION:
+        got = header["coordinate_convention"]
+        raise _bad(f"coordinate convention {got!r:.120}; this build reads {COORDINATE_CONVENTION!r}")
+    _name(header["codec"], "codec")
+    if not isinstance(header["meta"], dict):
+        raise _bad(f"meta must be an object, got {type(header['meta']).__name__}")
+    planes = _planes(header["planes"], limits)
+    shapes = {
+        "means": (n, 3),
+        "quats": (n, 4),
+        "scales": (n, 3),
+        "opacities": (n,),
+        "sh_dc": (n, 3),
+        "sh_rest": (n, SH_REST_COUNT[degree], 3),
+        "bits": (n, len(planes)),
+    }
+    sections = _layout(_sections(header["sections"], shapes, limits), body_start, len(data))
+    crcs = {e["name"]: e["crc32"] for e in header["sections"]}
+    view = memoryview(data)
+    for s in sections:
+        got = container.crc32(view[s.start : s.start + s.length])
+        if got != crcs[s.name]:
+            raise ArchiveError("bad_checksum", f"section {s.name!r}: CRC32 {got:08x}, header says {crcs[s.name]:08x}")
+    return header, planes, sections
+
+
+def read_header(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> dict[str, Any]:
+    """The validated header of an archive (section sizes, planes, meta) without decoding any section."""
+    return _validate(data, limits)[0]
+
+
+def _decode_section(data: bytes, s: _Section) -> np.ndarray:
+    payload = bytes(memoryview(data)[s.start : s.start + s.length])
+    try:
+        values = s.codec.decode(payload, s.shape, s.params, s.raw_length)
+    except ArchiveError:
+        raise
+    except (ValueError, IndexError, OverflowError, TypeError) as exc:  # a codec tripped on hostile bytes
+        raise ArchiveError("corrupt_section", f"section {s.name!r}: {exc}") from exc
+    want = np.float32 if s.codec.kind == "float32" else np.bool_
+    if values.shape != s.shape or values.dtype != want:
+        raise ArchiveError(
+            "corrupt_section",
+            f"section {s.name!r} decoded to {values.dtype} {values.shape}, expected {np.dtype(want)} {s.shape}",
+        )
+    return values
+
+
+def expanded_count(bits: Tensor) -> int:
+    """Gaussians after expansion: each stored Gaussian becomes 2^(its number of set bits)."""
+    popcounts = torch.bincount(bits.sum(dim=1), minlength=1) if len(bits) else torch.zeros(1, dtype=torch.int64)
+    return sum(int(c) << p for p, c in enumerate(popcounts.tolist()))
+
+
+def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> ArchiveContents:
+    """Inverse of ``encode_archive``; ArchiveError (with ``.code``) for any file that is not a valid archive.
+
+    Everything the header says is validated, and every section's checksum verified, before any section is decoded.
+    """
+    header, planes, sections = _validate(data, limits)
+    arrays = {s.name: _decode_section(data, s) for s in sections}
+    bits = torch.from_numpy(arrays.pop("bits"))
+    total = expanded_count(bits)
+    if total > limits.max_expanded_gaussians:
+        limit = limits.max_expanded_gaussians
+        raise ArchiveError("limit_exceeded", f"the levels expand to {total} Gaussians, over the limit of {limit}")
+    stored = GaussianScene(**{k: torch.from_numpy(v) for k, v in arrays.items()})
+    return ArchiveContents(stored, planes, bits, header["meta"])
+
+
+def expand_archive(contents: ArchiveContents) -> GaussianScene:
+    """The full scene: the stored set expanded through every level (``hierarchy.expand``)."""
+    return expand_planes(contents.stored, contents.planes, contents.bits)

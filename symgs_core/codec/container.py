@@ -1,0 +1,87 @@
+"""The `.symgs` container: a fixed prefix, a JSON header, then the sections back to back.
+
+    offset  size  field
+    0       8     magic  b"\\x89SYMGS\\r\\n" (the high byte and CR LF expose 7-bit and newline-mangling transfers)
+    8       4     format version, uint32 little-endian (FORMAT_VERSION)
+    12      4     header length H in bytes, uint32 little-endian
+    16      4     CRC32 of the header bytes, uint32 little-endian
+    20      H     header: UTF-8 JSON object (schema in ``archive.py``)
+    20 + H  ...   section payloads, contiguous, in section-table order, ending exactly at the end of the file
+
+Section offsets in the header count from the first byte after the header, so the header never depends on its own
+length. This module only frames and unframes; it knows nothing of Gaussians.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from typing import Any
+
+from .errors import ArchiveError
+
+MAGIC = b"\x89SYMGS\r\n"
+FORMAT_VERSION = 1
+_PREFIX = struct.Struct("<8sIII")
+PREFIX_SIZE = _PREFIX.size  # 20
+
+
+def crc32(data: bytes | memoryview) -> int:
+    return zlib.crc32(data) & 0xFFFFFFFF
+
+
+def frame(header: dict[str, Any], body: bytes) -> bytes:
+    """prefix + canonical JSON of ``header`` + ``body`` (the sections, already laid out as the header says)."""
+    text = json.dumps(header, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode("ascii")
+    return _PREFIX.pack(MAGIC, FORMAT_VERSION, len(text), crc32(text)) + text + body
+
+
+def _reject_constant(name: str) -> None:
+    raise ArchiveError("bad_header", f"header contains the non-JSON number {name}")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    keys = [k for k, _ in pairs]
+    if len(set(keys)) != len(keys):
+        raise ArchiveError("bad_header", f"header object repeats a key among {keys[:8]}")
+    return dict(pairs)
+
+
+def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
+    """Check magic, version, header size and CRC, and parse the header strictly.
+
+    Returns the header object and the offset of the first section byte. Nothing is allocated beyond the header,
+    whose size ``max_header_bytes`` bounds.
+    """
+    view = memoryview(data)
+    if len(view) < len(MAGIC):
+        if bytes(view) == MAGIC[: len(view)]:
+            raise ArchiveError("truncated", f"{len(view)} bytes: the file ends inside the magic bytes")
+        raise ArchiveError("bad_magic", "not a .symgs archive (too short for the magic bytes)")
+    if bytes(view[: len(MAGIC)]) != MAGIC:
+        raise ArchiveError("bad_magic", f"not a .symgs archive (starts with {bytes(view[:8])!r})")
+    if len(view) < PREFIX_SIZE:
+        raise ArchiveError("truncated", f"{len(view)} bytes: the file ends inside the {PREFIX_SIZE}-byte prefix")
+    _, version, header_len, header_crc = _PREFIX.unpack_from(view)
+    if version != FORMAT_VERSION:
+        raise ArchiveError("unsupported_version", f"format version {version}; this build reads {FORMAT_VERSION}")
+    if header_len > max_header_bytes:
+        raise ArchiveError("limit_exceeded", f"header of {header_len} bytes exceeds the limit of {max_header_bytes}")
+    end = PREFIX_SIZE + header_len
+    if len(view) < end:
+        raise ArchiveError("truncated", f"{len(view)} bytes: the {header_len}-byte header needs {end}")
+    text = view[PREFIX_SIZE:end]
+    if crc32(text) != header_crc:
+        raise ArchiveError("bad_checksum", f"header CRC32 {crc32(text):08x}, prefix says {header_crc:08x}")
+    try:
+        header = json.loads(
+            bytes(text).decode("utf-8"), parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
+    except ArchiveError:
+        raise
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise ArchiveError("bad_header", f"header is not UTF-8 JSON ({exc})") from exc
+    if not isinstance(header, dict):
+        raise ArchiveError("bad_header", f"header is a JSON {type(header).__name__}, expected an object")
+    return header, end

@@ -1,0 +1,73 @@
+"""The codec tables: section codecs by name (what readers look up) and archive codecs (what writers choose).
+
+An archive codec names one section codec for every section of the archive. The quantising codecs plug in here:
+``register_archive_codec("balanced", {"means": MyPositionCodec(bits=16), ...})`` makes them writable by name and
+readable by every reader of this build, since each section records the name of the codec that wrote it and
+everything that codec needs to decode it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from .errors import ArchiveError
+from .floats import FLOAT16, FLOAT32
+from .masks import MASKS
+from .section import SectionCodec, SectionKind
+
+# Every archive holds these sections, in this order; ``bits`` is the level bit matrix, the others are attributes.
+SECTION_NAMES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest", "bits")
+SECTION_KINDS: dict[str, SectionKind] = {name: "float32" for name in SECTION_NAMES[:-1]} | {"bits": "bool"}
+
+_SECTION_CODECS: dict[str, SectionCodec] = {}
+_ARCHIVE_CODECS: dict[str, dict[str, SectionCodec]] = {}
+
+
+def register_section_codec(codec: SectionCodec) -> None:
+    """Make ``codec`` readable under ``codec.name``; a name already taken by a different codec is a ValueError."""
+    known = _SECTION_CODECS.get(codec.name)
+    if known is not None and type(known) is not type(codec):
+        raise ValueError(f"section codec name {codec.name!r} is already taken by {type(known).__name__}")
+    if codec.kind not in ("float32", "bool"):
+        raise ValueError(f"section codec {codec.name!r} has kind {codec.kind!r}, expected 'float32' or 'bool'")
+    _SECTION_CODECS.setdefault(codec.name, codec)
+
+
+def register_archive_codec(name: str, codecs: Mapping[str, SectionCodec]) -> None:
+    """Make archive codec ``name`` writable: ``codecs`` maps every section name to the codec that writes it."""
+    if set(codecs) != set(SECTION_NAMES):
+        raise ValueError(f"archive codec {name!r} covers sections {sorted(codecs)}, expected {sorted(SECTION_NAMES)}")
+    for section, codec in codecs.items():
+        if codec.kind != SECTION_KINDS[section]:
+            raise ValueError(f"archive codec {name!r}: {codec.name!r} ({codec.kind}) cannot hold section {section!r}")
+    for codec in codecs.values():
+        register_section_codec(codec)
+    _ARCHIVE_CODECS[name] = dict(codecs)
+
+
+def archive_codec(name: str) -> dict[str, SectionCodec]:
+    """The section codecs of archive codec ``name``; ValueError naming the known ones otherwise."""
+    if name not in _ARCHIVE_CODECS:
+        raise ValueError(f"unknown archive codec {name!r}; known: {sorted(_ARCHIVE_CODECS)}")
+    return _ARCHIVE_CODECS[name]
+
+
+def archive_codec_names() -> list[str]:
+    return sorted(_ARCHIVE_CODECS)
+
+
+def section_codec(name: str, section: str) -> SectionCodec:
+    """The reader's codec for ``section`` written by ``name``; ArchiveError if unknown or of the wrong kind."""
+    codec = _SECTION_CODECS.get(name)
+    if codec is None:
+        known = sorted(_SECTION_CODECS)
+        raise ArchiveError("unsupported_codec", f"section {section!r} uses codec {name!r}; known: {known}")
+    if codec.kind != SECTION_KINDS[section]:
+        raise ArchiveError("bad_header", f"section {section!r} cannot be stored by codec {name!r} ({codec.kind})")
+    return codec
+
+
+# Bit-exact float32: the reference every lossy codec is measured against.
+register_archive_codec("lossless", {name: FLOAT32 for name in SECTION_NAMES[:-1]} | {"bits": MASKS})
+# float16 + zstd: about half the size of "lossless" with no quantiser to tune; rounds every attribute.
+register_archive_codec("float16", {name: FLOAT16 for name in SECTION_NAMES[:-1]} | {"bits": MASKS})

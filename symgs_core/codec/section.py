@@ -1,0 +1,89 @@
+"""What a section codec is, and the bounded zstandard framing the built-in codecs share.
+
+A section codec turns one array (a Gaussian attribute, or the level bit matrix) into a payload and back. Its ``name``
+is written into the archive's section table and is the only thing a reader looks up, so ``decode`` must depend on
+nothing but the payload, the shape the header implies, the codec's ``params`` (JSON, written beside the section)
+and ``raw_length``. ``check`` runs for every section before any payload is touched: it rejects parameters and sizes
+that cannot be right, so decoding never allocates more than the header, already bounded by the reader's limits,
+announced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import zstandard
+
+from .errors import ArchiveError
+
+SectionKind = Literal["float32", "bool"]
+
+
+@dataclass(frozen=True)
+class EncodedSection:
+    """A coded section: the bytes stored, the size of its decoded byte stream, and the codec's parameters."""
+
+    payload: bytes
+    raw_length: int
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+class SectionCodec(Protocol):
+    """One way to store a section. ``kind``: what ``decode`` returns (float32 values or a bool matrix)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def kind(self) -> SectionKind: ...
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        """``values`` [N, ...] (float32 for attributes, bool for the bit matrix) -> payload; ValueError if unfit."""
+        ...
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        """Raise ArchiveError("bad_header") unless ``params`` and ``raw_length`` can describe an array of ``shape``."""
+        ...
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        """The array of ``shape``; ArchiveError("corrupt_section") when the payload disagrees. Runs after ``check``."""
+        ...
+
+
+def zstd_compress(raw: bytes, level: int) -> bytes:
+    """One zstd frame that records its content size (readers rely on it to bound the output)."""
+    return zstandard.ZstdCompressor(level=level, write_content_size=True).compress(raw)
+
+
+def zstd_decompress_exact(payload: bytes, raw_length: int, what: str) -> bytes:
+    """Decompress one zstd frame that must hold exactly ``raw_length`` bytes and nothing after it.
+
+    The frame's declared content size is checked before decompression: zstandard allocates whatever the frame
+    declares, whatever ``max_output_size`` says.
+    """
+    try:
+        declared = zstandard.frame_content_size(payload)
+    except zstandard.ZstdError as exc:
+        raise ArchiveError("corrupt_section", f"{what}: not a zstd frame ({exc})") from exc
+    if declared != raw_length:
+        raise ArchiveError("corrupt_section", f"{what}: zstd frame declares {declared} bytes, header says {raw_length}")
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=raw_length, allow_extra_data=False)
+    except zstandard.ZstdError as exc:
+        raise ArchiveError("corrupt_section", f"{what}: zstd decoding failed ({exc})") from exc
+    if len(raw) != raw_length:
+        raise ArchiveError("corrupt_section", f"{what}: decoded {len(raw)} bytes, header says {raw_length}")
+    return raw
+
+
+def check_params(codec: str, params: dict[str, Any], allowed: dict[str, tuple[object, ...]]) -> None:
+    """Exactly the keys of ``allowed``, each with one of its listed values; ArchiveError("bad_header") otherwise."""
+    if set(params) != set(allowed):
+        raise ArchiveError("bad_header", f"{codec}: parameters {sorted(params)}, expected {sorted(allowed)}")
+    for key, values in allowed.items():
+        value = params[key]
+        # bool is an int in Python and 1 == True: compare types too so a parameter keeps its JSON type.
+        if not any(type(value) is type(v) and value == v for v in values):
+            raise ArchiveError("bad_header", f"{codec}: parameter {key}={value!r}, expected one of {list(values)}")
