@@ -1,0 +1,583 @@
+"""Posed image sets: NeRF-Synthetic (``transforms_*.json``) and COLMAP (``sparse/0``, text or binary).
+
+Every camera comes out in our convention (``cameras.COORDINATE_CONVENTION``: OpenCV axes, world-to-camera).
+Images are float32 [H, W, 3] in [0, 1]; RGBA images are composited on a chosen background.
+
+NeRF-Synthetic: ``transform_matrix`` is camera-to-world with OpenGL/Blender camera axes (x right, y up, z back);
+the focal length comes from ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy`` when given, as in
+instant-ngp style files).
+
+COLMAP: ``sparse/0/{cameras,images}.{txt,bin}`` (binary preferred when both exist; ``points3D`` is not needed).
+Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
+to the size of the image actually read. Pinhole models (PINHOLE, SIMPLE_PINHOLE) are exact. SIMPLE_RADIAL, RADIAL
+and OPENCV are accepted when their distortion coefficients are zero; otherwise loading fails with
+``distorted_camera`` (undistort with COLMAP's ``image_undistorter``) unless ``ignore_distortion=True`` treats them
+as pinhole cameras. Fisheye and other models fail with ``unknown_camera_model``. Hold-out split (LLFF
+convention): images sorted by name, every 8th one (index 0, 8, 16, ...) is "test", the rest "train".
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .cameras import Camera
+
+Split = Literal["train", "val", "test", "all"]
+Layout = Literal["nerf_synthetic", "colmap"]
+
+LLFF_HOLD = 8
+_NERF_SPLITS = ("train", "val", "test")
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+# COLMAP camera models: id -> (name, parameter count).
+COLMAP_MODELS = {
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+    5: ("OPENCV_FISHEYE", 8),
+    6: ("FULL_OPENCV", 12),
+    7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4),
+    9: ("RADIAL_FISHEYE", 5),
+    10: ("THIN_PRISM_FISHEYE", 12),
+}
+_MODEL_IDS = {name: i for i, (name, _) in COLMAP_MODELS.items()}
+# Where fx, fy, cx, cy sit in each supported model's parameters, and where its distortion coefficients start.
+_INTRINSICS = {
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2), 3),
+    "PINHOLE": ((0, 1, 2, 3), 4),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2), 3),
+    "RADIAL": ((0, 0, 1, 2), 3),
+    "OPENCV": ((0, 1, 2, 3), 4),
+}
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
+
+    Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, malformed,
+    unknown_camera_model, distorted_camera, camera_missing, empty.
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class View:
+    """One posed image: ``image`` [H, W, 3] float32 in [0, 1], the size of ``camera``."""
+
+    camera: Camera
+    image: Tensor
+    name: str
+
+
+@dataclass(frozen=True)
+class PosedFrame:
+    """A camera and the image file it belongs to, before the image is decoded."""
+
+    camera: Camera
+    path: Path
+    name: str
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Shared helpers
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+
+
+def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """Image [H, W, 3] float32 in [0, 1]; an alpha channel is composited on ``background``."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
+            array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+    rgb = torch.from_numpy(array[..., :3].copy())
+    if has_alpha:
+        alpha = torch.from_numpy(array[..., 3:].copy())
+        rgb = rgb * alpha + torch.tensor(background, dtype=torch.float32) * (1.0 - alpha)
+    return rgb
+
+
+def _resize(image: Tensor, width: int, height: int) -> Tensor:
+    """Anti-aliased resize of [H, W, 3]."""
+    if image.shape[:2] == (height, width):
+        return image
+    out = torch.nn.functional.interpolate(
+        image.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False
+    )
+    return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+
+
+def _scaled(camera: Camera, scale: float) -> Camera:
+    if scale == 1.0:
+        return camera
+    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+
+
+def _subsample(frames: list[PosedFrame], max_views: int | None) -> list[PosedFrame]:
+    """At most ``max_views`` frames, evenly spaced over the list, in order."""
+    if max_views is None or max_views >= len(frames):
+        return frames
+    if max_views <= 0:
+        raise ValueError(f"max_views must be positive, got {max_views}")
+    return [frames[i * len(frames) // max_views] for i in range(max_views)]
+
+
+def _check_background(background: tuple[float, float, float]) -> tuple[float, float, float]:
+    values = tuple(float(v) for v in background)
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise ValueError(f"background must be three values in [0, 1], got {background}")
+    return values  # type: ignore[return-value]
+
+
+def _rotation_ok(r: np.ndarray) -> bool:
+    return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
+
+
+def _load_views(frames: list[PosedFrame], background: tuple[float, float, float]) -> list[View]:
+    views = []
+    for frame in frames:
+        image = read_image(frame.path, background)
+        views.append(View(frame.camera, _resize(image, frame.camera.width, frame.camera.height), frame.name))
+    return views
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# NeRF-Synthetic
+
+
+def _find_image(root: Path, file_path: str) -> Path:
+    base = root / file_path
+    candidates = [base] + [base.with_name(base.name + s) for s in _IMAGE_SUFFIXES]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise DatasetError(
+        "image_missing", f"image {file_path!r} not found under {root.name}/ (tried {', '.join(_IMAGE_SUFFIXES)})"
+    )
+
+
+def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
+    path = root / f"transforms_{split}.json"
+    if not path.is_file():
+        raise DatasetError("not_found", f"{root.name}: no {path.name}")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError("bad_json", f"{path.name}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
+        raise DatasetError("bad_transforms", f"{path.name}: expected an object with a 'frames' list")
+    if "camera_angle_x" not in meta and "fl_x" not in meta:
+        raise DatasetError("bad_transforms", f"{path.name}: neither 'camera_angle_x' nor 'fl_x' is given")
+    # OpenGL camera axes (x right, y up, z back) -> OpenCV (x right, y down, z forward).
+    flip = np.diag([1.0, -1.0, -1.0])
+    frames = []
+    for i, frame in enumerate(meta["frames"]):
+        try:
+            file_path = str(frame["file_path"])
+            c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError("bad_transforms", f"{path.name}: frame {i} is malformed ({exc})") from None
+        if c2w.shape not in ((4, 4), (3, 4)) or not np.isfinite(c2w).all() or not _rotation_ok(c2w[:3, :3]):
+            raise DatasetError("bad_transforms", f"{path.name}: frame {i} transform_matrix is not a rigid 4x4 pose")
+        image_path = _find_image(root, file_path)
+        width, height = _image_size(image_path)
+        fx, fy, cx, cy = _nerf_intrinsics(meta, width, height, path)
+        rotation = (c2w[:3, :3] @ flip).T
+        t = -rotation @ c2w[:3, 3]
+        camera = Camera(
+            torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), fx, fy, cx, cy, width, height, file_path
+        )
+        frames.append(PosedFrame(camera, image_path, file_path))
+    return frames
+
+
+def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float, float, float, float]:
+    try:
+        if "fl_x" in meta:
+            # Given for a stated image size, rescaled to the size actually read.
+            sx = width / float(meta.get("w", width))
+            sy = height / float(meta.get("h", height))
+            fx = float(meta["fl_x"]) * sx
+            fy = float(meta.get("fl_y", meta["fl_x"])) * sy
+            return fx, fy, float(meta.get("cx", width / sx / 2)) * sx, float(meta.get("cy", height / sy / 2)) * sy
+        angle = float(meta["camera_angle_x"])
+    except (TypeError, ValueError, ZeroDivisionError) as exc:
+        raise DatasetError("bad_transforms", f"{path.name}: bad intrinsics ({exc})") from None
+    if not 0.0 < angle < math.pi:
+        raise DatasetError("bad_transforms", f"{path.name}: camera_angle_x must be in (0, pi) radians, got {angle}")
+    fx = 0.5 * width / math.tan(0.5 * angle)
+    return fx, fx, width / 2.0, height / 2.0
+
+
+def nerf_synthetic_frames(root: str | Path, split: Split = "train") -> list[PosedFrame]:
+    """Cameras and image paths of a NeRF-Synthetic split ("all": every transforms file present, in train, val,
+    test order)."""
+    root = Path(root)
+    if split == "all":
+        present = [s for s in _NERF_SPLITS if (root / f"transforms_{s}.json").is_file()]
+        if not present:
+            raise DatasetError("not_found", f"{root.name}: no transforms_*.json")
+        return [f for s in present for f in _nerf_frames(root, s)]
+    if split not in _NERF_SPLITS:
+        raise DatasetError("bad_split", f"unknown split {split!r}; expected train, val, test or all")
+    return _nerf_frames(root, split)
+
+
+def load_nerf_synthetic(
+    root: str | Path,
+    split: Split = "train",
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    max_views: int | None = None,
+    scale: float = 1.0,
+) -> list[View]:
+    """Views of a NeRF-Synthetic split, RGBA composited on ``background``, resized by ``scale``."""
+    background = _check_background(background)
+    frames = _subsample(nerf_synthetic_frames(root, split), max_views)
+    frames = [PosedFrame(_scaled(f.camera, scale), f.path, f.name) for f in frames]
+    return _load_views(frames, background)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# COLMAP
+
+
+@dataclass(frozen=True)
+class ColmapCamera:
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ColmapImage:
+    """A registered image: world-to-camera rotation ``qvec`` (w, x, y, z) and translation ``tvec``."""
+
+    qvec: tuple[float, float, float, float]
+    tvec: tuple[float, float, float]
+    camera_id: int
+    name: str
+
+
+class _Bytes:
+    """Bounds-checked reading of a little-endian COLMAP binary file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.data = path.read_bytes()
+        self.pos = 0
+
+    def remaining(self) -> int:
+        return len(self.data) - self.pos
+
+    def read(self, fmt: str) -> tuple:
+        size = struct.calcsize("<" + fmt)
+        if size > self.remaining():
+            raise DatasetError("malformed", f"{self.path.name}: ends early at byte {self.pos}")
+        values = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return values
+
+    def count(self, min_record: int) -> int:
+        (n,) = self.read("Q")
+        if n * min_record > self.remaining():
+            raise DatasetError(
+                "malformed", f"{self.path.name}: claims {n} records but holds only {self.remaining()} more bytes"
+            )
+        return n
+
+    def skip(self, size: int) -> None:
+        if size > self.remaining():
+            raise DatasetError("malformed", f"{self.path.name}: ends early at byte {self.pos}")
+        self.pos += size
+
+    def cstring(self) -> str:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise DatasetError("malformed", f"{self.path.name}: unterminated image name at byte {self.pos}")
+        raw, self.pos = self.data[self.pos : end], end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise DatasetError("malformed", f"{self.path.name}: image name is not UTF-8") from None
+
+
+def _model_name(model_id: int, path: Path) -> tuple[str, int]:
+    if model_id not in COLMAP_MODELS:
+        raise DatasetError("unknown_camera_model", f"{path.name}: unknown camera model id {model_id}")
+    return COLMAP_MODELS[model_id]
+
+
+def read_colmap_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
+    f = _Bytes(path)
+    cameras = {}
+    for _ in range(f.count(24)):
+        camera_id, model_id, width, height = f.read("iiQQ")
+        name, count = _model_name(model_id, path)
+        cameras[camera_id] = ColmapCamera(name, width, height, f.read(f"{count}d"))
+    return cameras
+
+
+def read_colmap_images_binary(path: Path) -> dict[int, ColmapImage]:
+    f = _Bytes(path)
+    images = {}
+    for _ in range(f.count(4 + 7 * 8 + 4 + 1 + 8)):
+        (image_id,) = f.read("i")
+        q = f.read("4d")
+        t = f.read("3d")
+        (camera_id,) = f.read("i")
+        name = f.cstring()
+        (points,) = f.read("Q")
+        f.skip(points * 24)  # (x, y, point3D_id) per 2D point; not needed
+        images[image_id] = ColmapImage(q, t, camera_id, name)  # type: ignore[arg-type]
+    return images
+
+
+def _text_lines(path: Path) -> list[tuple[int, str]]:
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise DatasetError("malformed", f"{path.name}: not a text file") from None
+    return [(i + 1, line) for i, line in enumerate(text.splitlines()) if not line.lstrip().startswith("#")]
+
+
+def read_colmap_cameras_text(path: Path) -> dict[int, ColmapCamera]:
+    cameras = {}
+    for number, line in _text_lines(path):
+        words = line.split()
+        if not words:
+            continue
+        try:
+            camera_id, model, width, height = int(words[0]), words[1], int(words[2]), int(words[3])
+            params = tuple(float(w) for w in words[4:])
+        except (IndexError, ValueError):
+            raise DatasetError("malformed", f"{path.name}: line {number} is malformed: {line.strip()!r}") from None
+        if model not in _MODEL_IDS:
+            raise DatasetError("unknown_camera_model", f"{path.name}: unknown camera model {model!r}")
+        expected = COLMAP_MODELS[_MODEL_IDS[model]][1]
+        if len(params) != expected:
+            raise DatasetError(
+                "malformed", f"{path.name}: {model} needs {expected} parameters, line {number} has {len(params)}"
+            )
+        cameras[camera_id] = ColmapCamera(model, width, height, params)
+    return cameras
+
+
+def read_colmap_images_text(path: Path) -> dict[int, ColmapImage]:
+    # Two lines per image: the pose line, then its 2D points (possibly empty).
+    lines = _text_lines(path)
+    images = {}
+    for number, line in lines[0::2]:
+        if not line.strip():
+            continue
+        words = line.split(maxsplit=9)
+        try:
+            image_id = int(words[0])
+            q = tuple(float(w) for w in words[1:5])
+            t = tuple(float(w) for w in words[5:8])
+            camera_id, name = int(words[8]), words[9].strip()
+        except (IndexError, ValueError):
+            raise DatasetError("malformed", f"{path.name}: line {number} is malformed: {line.strip()!r}") from None
+        images[image_id] = ColmapImage(q, t, camera_id, name)  # type: ignore[arg-type]
+    return images
+
+
+def colmap_model_dir(root: Path) -> Path | None:
+    """The folder holding cameras.{txt,bin} and images.{txt,bin}: sparse/0, or sparse."""
+    for folder in (root / "sparse" / "0", root / "sparse"):
+        if any((folder / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return folder
+    return None
+
+
+def read_colmap_model(root: str | Path) -> tuple[dict[int, ColmapCamera], dict[int, ColmapImage]]:
+    """Cameras and registered images of a COLMAP reconstruction (binary files preferred over text)."""
+    root = Path(root)
+    folder = colmap_model_dir(root)
+    if folder is None:
+        raise DatasetError("not_found", f"{root.name}: no sparse/0/cameras.bin or cameras.txt")
+    if (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file():
+        return read_colmap_cameras_binary(folder / "cameras.bin"), read_colmap_images_binary(folder / "images.bin")
+    if (folder / "cameras.txt").is_file() and (folder / "images.txt").is_file():
+        return read_colmap_cameras_text(folder / "cameras.txt"), read_colmap_images_text(folder / "images.txt")
+    raise DatasetError("not_found", f"{root.name}: {folder.name}/ lacks a matching images.bin or images.txt")
+
+
+def _quat_to_rotmat(q: tuple[float, float, float, float]) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _pinhole(camera: ColmapCamera, ignore_distortion: bool, camera_id: int) -> tuple[float, float, float, float]:
+    if camera.model not in _INTRINSICS:
+        raise DatasetError(
+            "unknown_camera_model",
+            f"camera {camera_id}: model {camera.model} is not supported (PINHOLE, SIMPLE_PINHOLE; SIMPLE_RADIAL, "
+            f"RADIAL and OPENCV without distortion)",
+        )
+    index, distortion_start = _INTRINSICS[camera.model]
+    distortion = camera.params[distortion_start:]
+    if any(d != 0.0 for d in distortion) and not ignore_distortion:
+        raise DatasetError(
+            "distorted_camera",
+            f"camera {camera_id}: {camera.model} has distortion {list(distortion)}; undistort the images first "
+            f"(colmap image_undistorter) or load with ignore_distortion=True to treat it as a pinhole camera",
+        )
+    fx, fy, cx, cy = (camera.params[i] for i in index)
+    return fx, fy, cx, cy
+
+
+def _colmap_image_dir(root: Path, images: str | None) -> Path:
+    if images is not None:
+        folder = root / images
+        if not folder.is_dir():
+            raise DatasetError("image_missing", f"{root.name}: no image folder {images!r}")
+        return folder
+    if (root / "images").is_dir():
+        return root / "images"
+    downsampled = sorted(
+        (int(p.name.split("_", 1)[1]), p) for p in root.glob("images_*") if p.is_dir() and p.name[7:].isdigit()
+    )
+    if not downsampled:
+        raise DatasetError("image_missing", f"{root.name}: no images/ or images_N/ folder")
+    return downsampled[0][1]
+
+
+def colmap_frames(
+    root: str | Path, split: Split = "all", *, images: str | None = None, ignore_distortion: bool = False
+) -> list[PosedFrame]:
+    """Cameras and image paths of a COLMAP dataset, sorted by image name; split by the LLFF hold-out."""
+    root = Path(root)
+    if split not in ("train", "test", "all"):
+        raise DatasetError("bad_split", f"unknown split {split!r} for a COLMAP dataset; expected train, test or all")
+    cameras, registered = read_colmap_model(root)
+    folder = _colmap_image_dir(root, images)
+    frames = []
+    for index, image in enumerate(sorted(registered.values(), key=lambda im: im.name)):
+        held_out = index % LLFF_HOLD == 0
+        if (split == "train" and held_out) or (split == "test" and not held_out):
+            continue
+        cam = cameras.get(image.camera_id)
+        if cam is None:
+            raise DatasetError("camera_missing", f"image {image.name} refers to missing camera {image.camera_id}")
+        fx, fy, cx, cy = _pinhole(cam, ignore_distortion, image.camera_id)
+        path = folder / image.name
+        if not path.is_file():
+            raise DatasetError("image_missing", f"image {image.name} not found in {folder.name}/")
+        width, height = _image_size(path)
+        sx, sy = width / cam.width, height / cam.height
+        if abs(sx - sy) > 0.02 * max(sx, sy):
+            raise DatasetError(
+                "bad_image",
+                f"image {image.name} is {width}x{height} but camera {image.camera_id} is {cam.width}x{cam.height}: "
+                f"the aspect ratios differ",
+            )
+        rotation = _quat_to_rotmat(image.qvec)
+        camera = Camera(
+            torch.from_numpy(rotation).float(),
+            torch.tensor(image.tvec, dtype=torch.float32),
+            fx * sx,
+            fy * sy,
+            cx * sx,
+            cy * sy,
+            width,
+            height,
+            image.name,
+        )
+        frames.append(PosedFrame(camera, path, image.name))
+    return frames
+
+
+def load_colmap(
+    root: str | Path,
+    split: Split = "all",
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    max_views: int | None = None,
+    scale: float = 1.0,
+    *,
+    images: str | None = None,
+    ignore_distortion: bool = False,
+) -> list[View]:
+    """Views of a COLMAP dataset (see the module docstring for models, image folders and the hold-out split)."""
+    background = _check_background(background)
+    frames = _subsample(colmap_frames(root, split, images=images, ignore_distortion=ignore_distortion), max_views)
+    frames = [PosedFrame(_scaled(f.camera, scale), f.path, f.name) for f in frames]
+    return _load_views(frames, background)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Either layout
+
+
+def dataset_layout(root: str | Path) -> Layout:
+    """Which loader reads ``root``; DatasetError when neither layout is there."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError("not_found", f"dataset folder {root} does not exist")
+    if any((root / f"transforms_{s}.json").is_file() for s in _NERF_SPLITS):
+        return "nerf_synthetic"
+    if colmap_model_dir(root) is not None:
+        return "colmap"
+    raise DatasetError(
+        "unknown_layout",
+        f"{root.name}: neither a NeRF-Synthetic dataset (transforms_train.json, ...) nor a COLMAP one "
+        f"(sparse/0/cameras.bin or cameras.txt)",
+    )
+
+
+def dataset_frames(root: str | Path, split: Split = "all") -> list[PosedFrame]:
+    """Cameras and image paths of either layout, without decoding any image."""
+    if dataset_layout(root) == "nerf_synthetic":
+        frames = nerf_synthetic_frames(root, split)
+    else:
+        frames = colmap_frames(root, split)
+    if not frames:
+        raise DatasetError("empty", f"{Path(root).name}: split {split!r} has no views")
+    return frames
+
+
+def load_dataset(
+    root: str | Path,
+    split: Split = "all",
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    max_views: int | None = None,
+    scale: float = 1.0,
+) -> list[View]:
+    """Views of a NeRF-Synthetic or COLMAP dataset, whichever ``root`` holds."""
+    background = _check_background(background)
+    frames = _subsample(dataset_frames(root, split), max_views)
+    frames = [PosedFrame(_scaled(f.camera, scale), f.path, f.name) for f in frames]
+    return _load_views(frames, background)

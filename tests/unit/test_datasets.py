@@ -1,0 +1,361 @@
+"""Dataset loaders: NeRF-Synthetic and COLMAP (text and binary), cameras against exact oracles."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from symgs_core.cameras import Camera
+from symgs_core.datasets import (
+    COLMAP_MODELS,
+    DatasetError,
+    colmap_frames,
+    dataset_frames,
+    dataset_layout,
+    load_colmap,
+    load_dataset,
+    load_nerf_synthetic,
+    read_colmap_model,
+)
+from tests.conftest import shared_file
+
+MODEL_IDS = {name: i for i, (name, _) in COLMAP_MODELS.items()}
+
+
+def poses(count: int) -> list[Camera]:
+    """Cameras around the origin at different heights and distances, 40x30 pixels."""
+    cams = []
+    for i in range(count):
+        a = 2 * math.pi * i / count
+        eye = (3.0 * math.cos(a), 3.0 * math.sin(a), 0.5 + 0.3 * i)
+        cams.append(Camera.look_at(eye, (0.1, -0.2, 0.3), fov_deg=50.0, width=40, height=30))
+    return cams
+
+
+def assert_same_pose(a: Camera, b: Camera, atol: float = 1e-5) -> None:
+    torch.testing.assert_close(a.R, b.R, rtol=0, atol=atol)
+    torch.testing.assert_close(a.t, b.t, rtol=0, atol=atol)
+    for name in ("fx", "fy", "cx", "cy"):
+        assert getattr(a, name) == pytest.approx(getattr(b, name), rel=1e-6), name
+    assert (a.width, a.height) == (b.width, b.height)
+
+
+def rgba(width: int, height: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 256, size=(height, width, 4), dtype=np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# NeRF-Synthetic
+
+
+def write_nerf(root: Path, cams: dict[str, list[Camera]], fov_deg: float = 50.0) -> dict[str, list[np.ndarray]]:
+    """transforms_{split}.json with OpenGL camera-to-world matrices, and RGBA PNGs; returns the pixels."""
+    pixels: dict[str, list[np.ndarray]] = {}
+    for split, cameras in cams.items():
+        (root / split).mkdir(parents=True)
+        frames, pixels[split] = [], []
+        for i, cam in enumerate(cameras):
+            c2w = np.eye(4)
+            c2w[:3, :3] = cam.R.double().numpy().T @ np.diag([1.0, -1.0, -1.0])
+            c2w[:3, 3] = cam.center.double().numpy()
+            array = rgba(cam.width, cam.height, seed=i)
+            Image.fromarray(array, "RGBA").save(root / split / f"r_{i}.png")
+            pixels[split].append(array)
+            frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0, "transform_matrix": c2w.tolist()})
+        meta = {"camera_angle_x": math.radians(fov_deg), "frames": frames}
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return pixels
+
+
+def test_nerf_cameras_and_compositing(tmp_path: Path) -> None:
+    cams = poses(4)
+    pixels = write_nerf(tmp_path, {"train": cams[:3], "test": cams[3:]})
+    views = load_nerf_synthetic(tmp_path, "train", background=(0.2, 0.4, 0.6))
+    assert [v.name for v in views] == ["./train/r_0", "./train/r_1", "./train/r_2"]
+    for view, cam, array in zip(views, cams[:3], pixels["train"], strict=True):
+        assert_same_pose(view.camera, cam)
+        rgb, alpha = array[..., :3] / 255.0, array[..., 3:] / 255.0
+        expected = rgb * alpha + np.array([0.2, 0.4, 0.6]) * (1 - alpha)
+        assert view.image.dtype == torch.float32 and view.image.shape == (30, 40, 3)
+        np.testing.assert_allclose(view.image.numpy(), expected, rtol=0, atol=1e-6)
+    assert dataset_layout(tmp_path) == "nerf_synthetic"
+    assert [v.name for v in load_dataset(tmp_path, "all")] == [*(f"./train/r_{i}" for i in range(3)), "./test/r_0"]
+
+
+def test_nerf_scale_and_max_views(tmp_path: Path) -> None:
+    cams = poses(6)
+    write_nerf(tmp_path, {"train": cams})
+    views = load_nerf_synthetic(tmp_path, "train", max_views=3, scale=0.5)
+    assert [v.name for v in views] == ["./train/r_0", "./train/r_2", "./train/r_4"]
+    for view, cam in zip(views, cams[0::2], strict=True):
+        assert view.image.shape == (15, 20, 3)
+        assert_same_pose(view.camera, cam.resized(20, 15))
+        assert 0.0 <= float(view.image.min()) and float(view.image.max()) <= 1.0
+
+
+def test_nerf_errors(tmp_path: Path) -> None:
+    write_nerf(tmp_path, {"train": poses(2)})
+    with pytest.raises(DatasetError, match="transforms_val.json") as err:
+        load_nerf_synthetic(tmp_path, "val")
+    assert err.value.code == "not_found"
+    with pytest.raises(DatasetError) as err:
+        load_nerf_synthetic(tmp_path, "validation")  # type: ignore[arg-type]
+    assert err.value.code == "bad_split"
+
+    meta_path = tmp_path / "transforms_train.json"
+    meta = json.loads(meta_path.read_text())
+    cases = []
+    broken = json.loads(json.dumps(meta))
+    broken["frames"][1]["transform_matrix"][0][0] = 5.0  # not a rotation
+    cases.append((json.dumps(broken), "bad_transforms", "frame 1"))
+    broken = json.loads(json.dumps(meta))
+    broken["frames"][0]["file_path"] = "./train/nowhere"
+    cases.append((json.dumps(broken), "image_missing", "nowhere"))
+    broken = json.loads(json.dumps(meta))
+    del broken["camera_angle_x"]
+    cases.append((json.dumps(broken), "bad_transforms", "camera_angle_x"))
+    broken = json.loads(json.dumps(meta))
+    del broken["frames"][0]["transform_matrix"]
+    cases.append((json.dumps(broken), "bad_transforms", "frame 0"))
+    cases.append(('{"frames": [', "bad_json", "not valid JSON"))
+    for text, code, message in cases:
+        meta_path.write_text(text)
+        with pytest.raises(DatasetError, match=message) as err:
+            load_nerf_synthetic(tmp_path, "train")
+        assert err.value.code == code
+    meta_path.write_text(json.dumps(meta))
+    (tmp_path / "train" / "r_1.png").write_bytes(b"not a png")
+    with pytest.raises(DatasetError, match="r_1.png") as err:
+        load_nerf_synthetic(tmp_path, "train")
+    assert err.value.code == "bad_image"
+
+
+def test_unknown_layout(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError) as err:
+        load_dataset(tmp_path)
+    assert err.value.code == "unknown_layout"
+    with pytest.raises(DatasetError) as err:
+        load_dataset(tmp_path / "absent")
+    assert err.value.code == "not_found"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# COLMAP
+
+
+def quaternion(cam: Camera) -> list[float]:
+    x, y, z, w = Rotation.from_matrix(cam.R.double().numpy()).as_quat()
+    return [float(w), float(x), float(y), float(z)]
+
+
+def write_colmap_text(
+    sparse: Path, cameras: dict[int, tuple[str, int, int, list[float]]], images: list[tuple[str, Camera, int]]
+) -> None:
+    sparse.mkdir(parents=True, exist_ok=True)
+    lines = ["# Camera list", *(f"{i} {m} {w} {h} {' '.join(map(repr, p))}" for i, (m, w, h, p) in cameras.items())]
+    (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
+    lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+    ]
+    for image_id, (name, cam, camera_id) in enumerate(images, start=1):
+        q, t = quaternion(cam), cam.t.double().tolist()
+        lines.append(f"{image_id} {' '.join(map(repr, q + t))} {camera_id} {name}")
+        lines.append("1.5 2.5 -1" if image_id % 2 else "")
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+
+
+def write_colmap_binary(sparse: Path, root: Path) -> None:
+    """The binary form of ``root``'s model, written from the text files with COLMAP's record layout."""
+    cameras, images = read_colmap_model(root)
+    out = bytearray(struct.pack("<Q", len(cameras)))
+    for camera_id, cam in cameras.items():
+        out += struct.pack(
+            f"<iiQQ{len(cam.params)}d", camera_id, MODEL_IDS[cam.model], cam.width, cam.height, *cam.params
+        )
+    (sparse / "cameras.bin").write_bytes(bytes(out))
+    out = bytearray(struct.pack("<Q", len(images)))
+    for image_id, im in images.items():
+        out += struct.pack("<i4d3di", image_id, *im.qvec, *im.tvec, im.camera_id)
+        out += im.name.encode() + b"\0"
+        out += struct.pack("<Q", 2) + struct.pack("<ddqddq", 1.0, 2.0, -1, 3.0, 4.0, 7)
+    (sparse / "images.bin").write_bytes(bytes(out))
+
+
+def make_colmap(root: Path, count: int = 10, folder: str = "images", size: tuple[int, int] = (40, 30)) -> list[Camera]:
+    cams = poses(count)
+    (root / folder).mkdir(parents=True)
+    for i in range(count):
+        Image.fromarray(rgba(size[0], size[1], i)[..., :3]).save(root / folder / f"img_{i:02d}.jpg")
+    intrinsics = {1: ("PINHOLE", 40, 30, [cams[0].fx, cams[0].fy, 20.0, 15.0])}
+    # Shuffled registration order: the loader sorts by name.
+    order = np.random.default_rng(0).permutation(count)
+    write_colmap_text(root / "sparse" / "0", intrinsics, [(f"img_{i:02d}.jpg", cams[i], 1) for i in order])
+    return cams
+
+
+def test_colmap_text_cameras_and_llff_split(tmp_path: Path) -> None:
+    cams = make_colmap(tmp_path, count=17)
+    frames = colmap_frames(tmp_path)
+    assert [f.name for f in frames] == [f"img_{i:02d}.jpg" for i in range(17)]
+    for frame, cam in zip(frames, cams, strict=True):
+        assert_same_pose(frame.camera, cam)
+    assert [f.name for f in colmap_frames(tmp_path, "test")] == ["img_00.jpg", "img_08.jpg", "img_16.jpg"]
+    assert len(colmap_frames(tmp_path, "train")) == 14
+    views = load_dataset(tmp_path, "test", max_views=2)
+    assert dataset_layout(tmp_path) == "colmap"
+    assert [v.name for v in views] == ["img_00.jpg", "img_08.jpg"]
+    assert views[0].image.shape == (30, 40, 3) and views[0].image.dtype == torch.float32
+    jpeg = np.asarray(Image.open(tmp_path / "images" / "img_08.jpg"), dtype=np.float32) / 255
+    np.testing.assert_array_equal(views[1].image.numpy(), jpeg)
+
+
+def test_colmap_binary_equals_text(tmp_path: Path) -> None:
+    make_colmap(tmp_path, count=9)
+    text = colmap_frames(tmp_path)
+    write_colmap_binary(tmp_path / "sparse" / "0", tmp_path)
+    for name in ("cameras.txt", "images.txt"):
+        (tmp_path / "sparse" / "0" / name).unlink()
+    binary = colmap_frames(tmp_path)
+    assert [f.name for f in binary] == [f.name for f in text]
+    for a, b in zip(binary, text, strict=True):
+        assert_same_pose(a.camera, b.camera, atol=0)
+
+
+def test_colmap_downsampled_images_rescale_intrinsics(tmp_path: Path) -> None:
+    cams = make_colmap(tmp_path, count=3, folder="images_2", size=(20, 15))
+    frames = colmap_frames(tmp_path)
+    for frame, cam in zip(frames, cams, strict=True):
+        assert frame.path.parent.name == "images_2"
+        assert_same_pose(frame.camera, cam.resized(20, 15))
+    views = load_colmap(tmp_path, scale=0.5)
+    assert views[0].image.shape == (8, 10, 3)
+    assert views[0].camera.fx == pytest.approx(cams[0].fx / 4)
+
+
+@pytest.mark.parametrize(
+    ("model", "params", "code"),
+    [
+        ("SIMPLE_PINHOLE", [50.0, 20.0, 15.0], None),
+        ("OPENCV", [50.0, 50.0, 20.0, 15.0, 0.0, 0.0, 0.0, 0.0], None),
+        ("SIMPLE_RADIAL", [50.0, 20.0, 15.0, 0.01], "distorted_camera"),
+        ("OPENCV_FISHEYE", [50.0, 50.0, 20.0, 15.0, 0.0, 0.0, 0.0, 0.0], "unknown_camera_model"),
+        ("PINHOLE", [50.0, 50.0, 20.0], "malformed"),
+        ("KANNALA", [50.0, 20.0, 15.0], "unknown_camera_model"),
+    ],
+)
+def test_colmap_camera_models(tmp_path: Path, model: str, params: list[float], code: str | None) -> None:
+    cams = make_colmap(tmp_path, count=2)
+    write_colmap_text(tmp_path / "sparse" / "0", {1: (model, 40, 30, params)}, [("img_00.jpg", cams[0], 1)])
+    if code is None:
+        (frame,) = colmap_frames(tmp_path)
+        assert (frame.camera.fx, frame.camera.fy, frame.camera.cx, frame.camera.cy) == (50.0, 50.0, 20.0, 15.0)
+        return
+    with pytest.raises(DatasetError) as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == code
+    if code == "distorted_camera":
+        (frame,) = colmap_frames(tmp_path, ignore_distortion=True)
+        assert frame.camera.fx == 50.0
+
+
+def test_colmap_errors(tmp_path: Path) -> None:
+    cams = make_colmap(tmp_path, count=2)
+    sparse = tmp_path / "sparse" / "0"
+    write_colmap_text(sparse, {1: ("PINHOLE", 40, 30, [50.0, 50.0, 20.0, 15.0])}, [("img_00.jpg", cams[0], 7)])
+    with pytest.raises(DatasetError, match="camera 7") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "camera_missing"
+    write_colmap_text(sparse, {1: ("PINHOLE", 40, 30, [50.0, 50.0, 20.0, 15.0])}, [("gone.jpg", cams[0], 1)])
+    with pytest.raises(DatasetError, match="gone.jpg") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "image_missing"
+    write_colmap_text(sparse, {1: ("PINHOLE", 40, 20, [50.0, 50.0, 20.0, 10.0])}, [("img_00.jpg", cams[0], 1)])
+    with pytest.raises(DatasetError, match="aspect") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "bad_image"
+    (sparse / "images.txt").write_text("1 0.5 0.5 not-a-number 0 0 0 0 1 img_00.jpg\n\n")
+    with pytest.raises(DatasetError, match="line 1") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "malformed"
+    with pytest.raises(DatasetError) as err:
+        colmap_frames(tmp_path, "val")
+    assert err.value.code == "bad_split"
+
+
+def test_colmap_binary_hostile_counts(tmp_path: Path) -> None:
+    make_colmap(tmp_path, count=2)
+    sparse = tmp_path / "sparse" / "0"
+    write_colmap_binary(sparse, tmp_path)
+    good = (sparse / "images.bin").read_bytes()
+    cases = [
+        struct.pack("<Q", 10**15) + good[8:],  # a count the file cannot hold
+        good[:-5],  # cut inside the last record
+        good[: good.index(b"img_01.jpg")] + b"img_01.jpg",  # name without its terminator
+    ]
+    for data in cases:
+        (sparse / "images.bin").write_bytes(data)
+        with pytest.raises(DatasetError) as err:
+            colmap_frames(tmp_path)
+        assert err.value.code == "malformed"
+    (sparse / "images.bin").write_bytes(good)
+    cameras = bytearray((sparse / "cameras.bin").read_bytes())
+    cameras[12:16] = struct.pack("<i", 99)  # model id of the first camera
+    (sparse / "cameras.bin").write_bytes(bytes(cameras))
+    with pytest.raises(DatasetError, match="model id 99") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "unknown_camera_model"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Real datasets
+
+
+def test_lego_cameras_look_at_the_origin() -> None:
+    root = shared_file("nerf_synthetic_lego_400px")
+    frames = dataset_frames(root, "all")
+    assert len(frames) == 300 and len(dataset_frames(root, "test")) == 200
+    for frame in frames:
+        cam = frame.camera
+        p = cam.R.double() @ torch.zeros(3, dtype=torch.float64) + cam.t.double()
+        assert p[2] > 3.0  # in front of the camera, about 4 units away
+        u, v = cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy
+        assert abs(u - 200.0) < 0.01 and abs(v - 200.0) < 0.01
+        assert cam.fx == pytest.approx(0.5 * 400 / math.tan(0.5 * 0.6911112070083618))
+        # Blender's world z is up, and no lego camera is upside down: image "down" points down in the world
+        assert float(cam.R[1, 2]) < 0
+    views = load_nerf_synthetic(root, "train", max_views=2, background=(0.0, 0.0, 0.0))
+    white = load_nerf_synthetic(root, "train", max_views=2)
+    assert views[0].image.shape == (400, 400, 3)
+    assert float(views[0].image[0, 0].abs().max()) == 0.0 and float(white[0].image[0, 0].min()) == 1.0
+
+
+def test_snowmiku_colmap_matches_the_graphdeco_cameras(tmp_path: Path) -> None:
+    root = shared_file("snowmiku_plush_capture_mit")
+    frames = colmap_frames(root)
+    assert len(frames) == 97 and len(colmap_frames(root, "test")) == 13
+    reference = {c["img_name"] + ".jpg": c for c in json.loads((root / "cameras_fullres_graphdeco.json").read_text())}
+    for frame in frames:
+        ref, cam = reference[frame.name], frame.camera
+        assert (cam.width, cam.height) == (495, 371)
+        np.testing.assert_allclose(cam.center.double().numpy(), ref["position"], atol=1e-5)
+        np.testing.assert_allclose(cam.R.double().numpy().T, ref["rotation"], atol=1e-6)
+        assert cam.fx == pytest.approx(ref["fx"] * 371 / ref["height"], rel=1e-9)
+    # The binary form of the same model reads the same cameras.
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    (tmp_path / "images_8").symlink_to(root / "images_8")
+    write_colmap_binary(tmp_path / "sparse" / "0", root)
+    for a, b in zip(colmap_frames(tmp_path), frames, strict=True):
+        assert a.name == b.name
+        assert_same_pose(a.camera, b.camera, atol=0)
+    (view,) = load_dataset(root, "test", max_views=1)
+    assert view.image.shape == (371, 495, 3) and float(view.image.std()) > 0.05
