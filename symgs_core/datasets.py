@@ -124,7 +124,7 @@ def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1
     return rgb
 
 
-def _resize(image: Tensor, width: int, height: int) -> Tensor:
+def resize_image(image: Tensor, width: int, height: int) -> Tensor:
     """Anti-aliased resize of [H, W, 3]."""
     if image.shape[:2] == (height, width):
         return image
@@ -164,7 +164,7 @@ def _load_views(frames: list[PosedFrame], background: tuple[float, float, float]
     views = []
     for frame in frames:
         image = read_image(frame.path, background)
-        views.append(View(frame.camera, _resize(image, frame.camera.width, frame.camera.height), frame.name))
+        views.append(View(frame.camera, resize_image(image, frame.camera.width, frame.camera.height), frame.name))
     return views
 
 
