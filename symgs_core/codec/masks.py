@@ -51,7 +51,10 @@ def read_varints(buf: np.ndarray, pos: int, count: int) -> tuple[np.ndarray, int
     window = buf[pos : pos + VARINT_MAX_BYTES * count]
     ends = np.flatnonzero(window < 0x80)[:count]
     if len(ends) < count:
-        raise ArchiveError("corrupt_section", f"mask stream ends inside a run list ({len(ends)} of {count} varints)")
+        raise ArchiveError(
+            "corrupt_section",
+            f"mask stream: {len(ends)} of {count} varints end within {len(window)} bytes (cut short or overlong)",
+        )
     starts = np.concatenate([[0], ends[:-1] + 1])
     lengths = ends - starts + 1
     if int(lengths.max()) > VARINT_MAX_BYTES:

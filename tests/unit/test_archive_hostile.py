@@ -1,0 +1,328 @@
+"""Corrupt, truncated and hostile `.symgs` files: the reader answers ArchiveError with the right code, quickly.
+
+Hostile headers are re-framed with a valid CRC (the layout is rebuilt here from the documented prefix), so each
+case reaches the validation it targets instead of stopping at the checksum.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import struct
+import zlib
+from collections.abc import Callable
+from datetime import timedelta
+from typing import Any
+
+import pytest
+import zstandard
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from symgs_core.codec import MAGIC, ArchiveError, DecodeLimits, decode_archive, encode_archive
+from symgs_core.codec.masks import write_varints
+from tests.unit.test_archive import random_contents
+
+QUICK = settings(max_examples=200, deadline=timedelta(seconds=2), suppress_health_check=[HealthCheck.too_slow])
+
+
+def small_archive() -> bytes:
+    return encode_archive(random_contents(5, 1, 2, seed=11))
+
+
+DATA = small_archive()
+
+
+def split(data: bytes) -> tuple[dict[str, Any], bytes]:
+    header_len = int.from_bytes(data[12:16], "little")
+    return json.loads(data[20 : 20 + header_len]), data[20 + header_len :]
+
+
+def frame(text: bytes, body: bytes, version: int = 1) -> bytes:
+    return MAGIC + struct.pack("<III", version, len(text), zlib.crc32(text)) + text + body
+
+
+def reframe(header: dict[str, Any], body: bytes) -> bytes:
+    # Compact separators as the writer uses; NaN and Infinity come out as the literals a strict reader refuses.
+    return frame(json.dumps(header, separators=(",", ":")).encode(), body)
+
+
+def with_payload(data: bytes, name: str, payload: bytes, raw_length: int | None = None) -> bytes:
+    """``data`` with section ``name`` replaced by ``payload`` and the table (offsets, CRCs) made consistent."""
+    header, body = split(data)
+    payloads = []
+    for s in header["sections"]:
+        payloads.append(payload if s["name"] == name else body[s["offset"] : s["offset"] + s["length"]])
+    offset = 0
+    for s, p in zip(header["sections"], payloads, strict=True):
+        s.update(offset=offset, length=len(p), crc32=zlib.crc32(p))
+        if s["name"] == name and raw_length is not None:
+            s["raw_length"] = raw_length
+        offset += len(p)
+    return reframe(header, b"".join(payloads))
+
+
+def code_of(data: bytes, limits: DecodeLimits | None = None) -> str:
+    with pytest.raises(ArchiveError) as info:
+        decode_archive(data, limits=limits or DecodeLimits())
+    return info.value.code
+
+
+def test_helpers_rebuild_a_valid_archive() -> None:
+    header, body = split(DATA)
+    assert reframe(header, body) == DATA
+    means = body[: header["sections"][0]["length"]]
+    assert with_payload(DATA, "means", means) == DATA
+
+
+def test_every_truncation_is_reported_as_truncated() -> None:
+    for length in range(len(DATA)):
+        assert code_of(DATA[:length]) == "truncated", length
+
+
+def test_every_single_bit_flip_is_caught() -> None:
+    header_end = 20 + int.from_bytes(DATA[12:16], "little")
+    for byte in range(len(DATA)):
+        if byte < 8:
+            expected = {"bad_magic"}
+        elif byte < 12:
+            expected = {"unsupported_version"}
+        elif byte < 16:  # header length: too long for the limit or the file, or a different CRC span
+            expected = {"limit_exceeded", "truncated", "bad_checksum"}
+        else:  # the header CRC, the header, or a section payload
+            expected = {"bad_checksum"}
+        for bit in range(8):
+            flipped = bytearray(DATA)
+            flipped[byte] ^= 1 << bit
+            assert code_of(bytes(flipped)) in expected, (byte, bit, header_end)
+
+
+def test_appended_bytes_are_trailing_data() -> None:
+    assert code_of(DATA + b"\0") == "trailing_data"
+
+
+@QUICK
+@given(st.binary(max_size=4096))
+def test_random_bytes_are_refused(data: bytes) -> None:
+    code_of(data)
+
+
+@QUICK
+@given(st.binary(max_size=2048), st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1))
+def test_random_bytes_behind_a_valid_magic_are_refused(tail: bytes, length: int, crc: int) -> None:
+    code_of(MAGIC + struct.pack("<III", 1, length, crc) + tail)
+
+
+@QUICK
+@given(st.binary(max_size=2048), st.binary(max_size=512))
+def test_random_headers_with_valid_checksums_are_refused(text: bytes, body: bytes) -> None:
+    code_of(frame(text, body))
+
+
+@QUICK
+@given(
+    st.recursive(
+        st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+        max_leaves=30,
+    )
+)
+def test_random_json_headers_are_refused(value: Any) -> None:
+    _, body = split(DATA)
+    code_of(frame(json.dumps(value).encode(), body))
+
+
+@QUICK
+@given(st.data())
+def test_overwritten_spans_are_refused(data: st.DataObject) -> None:
+    start = data.draw(st.integers(0, len(DATA) - 1))
+    junk = data.draw(st.binary(min_size=1, max_size=64))
+    corrupted = DATA[:start] + junk + DATA[start + len(junk) :]
+    if corrupted != DATA:
+        code_of(corrupted)
+
+
+def _leaves(obj: Any, path: tuple = ()) -> list[tuple]:
+    if isinstance(obj, dict):
+        return [path] + [p for k, v in obj.items() for p in _leaves(v, (*path, k))]
+    if isinstance(obj, list):
+        return [path] + [p for i, v in enumerate(obj) for p in _leaves(v, (*path, i))]
+    return [path]
+
+
+HOSTILE_VALUES = st.one_of(
+    st.integers(-(2**70), 2**70),
+    st.sampled_from([0, -1, 1, 2**31, 2**32, 2**63, 10**30]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=20),
+    st.none(),
+    st.booleans(),
+    st.lists(st.integers(-5, 5), max_size=4),
+    st.dictionaries(st.text(max_size=5), st.integers(), max_size=3),
+)
+
+
+@QUICK
+@given(st.data())
+def test_any_header_field_replaced_by_a_hostile_value_is_refused_or_harmless(data: st.DataObject) -> None:
+    header, body = split(DATA)
+    path = data.draw(st.sampled_from([p for p in _leaves(header) if p]))
+    value = data.draw(HOSTILE_VALUES)
+    hostile = copy.deepcopy(header)
+    target = hostile
+    for key in path[:-1]:
+        target = target[key]
+    original = target[path[-1]]
+    target[path[-1]] = value
+    try:
+        back = decode_archive(reframe(hostile, body))
+    except ArchiveError:
+        return
+    # Accepted only where any value of the right type is legitimate, or where nothing changed.
+    free = path[0] in ("meta", "codec") or path[-1] == "layout" or (path[0] == "planes" and path[-1] == "offset")
+    assert free or value == original, (path, value)
+    assert back.meta == hostile["meta"]
+
+
+def _set(path: tuple, value: Any) -> Callable[[dict], None]:
+    def apply(header: dict) -> None:
+        target = header
+        for key in path[:-1]:
+            target = target[key]
+        target[path[-1]] = value
+
+    return apply
+
+
+def _section(name: str, key: str, value: Any) -> Callable[[dict], None]:
+    def apply(header: dict) -> None:
+        next(s for s in header["sections"] if s["name"] == name)[key] = value
+
+    return apply
+
+
+def _shift(name: str, delta: int) -> Callable[[dict], None]:
+    def apply(header: dict) -> None:
+        next(s for s in header["sections"] if s["name"] == name)["offset"] += delta
+
+    return apply
+
+
+HOSTILE_HEADERS: list[tuple[str, Callable[[dict], None], str]] = [
+    ("huge count", _set(("count",), 10**12), "limit_exceeded"),
+    ("negative count", _set(("count",), -1), "bad_header"),
+    ("bool count", _set(("count",), True), "bad_header"),
+    ("string count", _set(("count",), "5"), "bad_header"),
+    ("count off by one", _set(("count",), 6), "bad_header"),
+    ("float count", _set(("count",), 5.0), "bad_header"),
+    ("sh degree 4", _set(("sh_degree",), 4), "bad_header"),
+    ("sh degree mismatch", _set(("sh_degree",), 2), "bad_header"),
+    ("NaN normal", _set(("planes", 0, "normal", 0), float("nan")), "bad_header"),
+    ("infinite offset", _set(("planes", 1, "offset"), float("inf")), "bad_header"),
+    ("non-unit normal", _set(("planes", 0, "normal"), [1.0, 1.0, 0.0]), "bad_header"),
+    ("short normal", _set(("planes", 0, "normal"), [1.0, 0.0]), "bad_header"),
+    ("string normal", _set(("planes", 0, "normal"), "up"), "bad_header"),
+    ("plane extra key", _set(("planes", 0, "d"), 1), "bad_header"),
+    ("too many planes", _set(("planes",), [{"normal": [1.0, 0.0, 0.0], "offset": 0.0}] * 33), "limit_exceeded"),
+    ("planes not a list", _set(("planes",), {}), "bad_header"),
+    ("negative offset", _section("quats", "offset", -1), "bad_header"),
+    ("overlapping sections", _shift("scales", -1), "bad_header"),
+    ("gap between sections", _shift("scales", 1), "bad_header"),
+    ("absurd length", _section("means", "length", 2**62), "limit_exceeded"),
+    ("absurd raw length", _section("sh_rest", "raw_length", 2**40), "limit_exceeded"),
+    ("wrong raw length", _section("sh_rest", "raw_length", 4), "bad_header"),
+    ("mask raw length beyond any stream", _section("bits", "raw_length", 10**6), "bad_header"),
+    ("last section past the end", _section("bits", "length", 10**6), "truncated"),
+    ("unknown codec", _section("means", "codec", "lz-magic"), "unsupported_codec"),
+    ("mask codec for an attribute", _section("means", "codec", "mask-zstd"), "bad_header"),
+    ("float codec for the masks", _section("bits", "codec", "f32-zstd"), "bad_header"),
+    ("unknown layout", _section("means", "params", {"layout": "diagonal"}), "bad_header"),
+    ("missing layout", _section("means", "params", {}), "bad_header"),
+    ("extra param", _section("bits", "params", {"x": 1}), "bad_header"),
+    ("params not an object", _section("bits", "params", []), "bad_header"),
+    ("crc out of range", _section("means", "crc32", 2**40), "bad_header"),
+    ("negative crc", _section("means", "crc32", -1), "bad_header"),
+    ("wrong crc", _section("means", "crc32", 12345), "bad_checksum"),
+    ("section extra key", _section("means", "note", "x"), "bad_header"),
+    ("missing section", lambda h: h["sections"].pop(2), "bad_header"),
+    ("duplicated section", lambda h: h["sections"].insert(0, dict(h["sections"][0])), "bad_header"),
+    ("reordered sections", lambda h: h["sections"].reverse(), "bad_header"),
+    ("sections not a list", _set(("sections",), {"means": 0}), "bad_header"),
+    ("section not an object", lambda h: h["sections"].__setitem__(0, "means"), "bad_header"),
+    ("meta not an object", _set(("meta",), [1, 2]), "bad_header"),
+    ("empty codec name", _set(("codec",), ""), "bad_header"),
+    ("other coordinate convention", _set(("coordinate_convention",), "opengl"), "bad_header"),
+    ("extra top-level key", _set(("extra",), 1), "bad_header"),
+    ("missing top-level key", lambda h: h.pop("planes"), "bad_header"),
+]
+
+
+@pytest.mark.parametrize("mutate,expected", [c[1:] for c in HOSTILE_HEADERS], ids=[c[0] for c in HOSTILE_HEADERS])
+def test_hostile_header_fields(mutate: Callable[[dict], None], expected: str) -> None:
+    header, body = split(DATA)
+    mutate(header)
+    assert code_of(reframe(header, body)) == expected
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        b"not json",
+        b"[1, 2, 3]",
+        b"[" * 200_000 + b"]" * 200_000,
+        b'{"count": 1, "count": 2}',
+        b"\xff\xfe{}",
+        b'{"count": NaN}',
+        b'{"count": ' + b"9" * 5000 + b"}",
+        b"",
+    ],
+    ids=["not json", "array", "deep nesting", "duplicate key", "not utf-8", "NaN", "huge integer", "empty"],
+)
+def test_header_that_is_not_a_strict_json_object(text: bytes) -> None:
+    _, body = split(DATA)
+    assert code_of(frame(text, body)) == "bad_header"
+
+
+def test_unsupported_version_and_header_size_limit() -> None:
+    header, body = split(DATA)
+    assert code_of(frame(json.dumps(header).encode(), body, version=2)) == "unsupported_version"
+    assert code_of(DATA, DecodeLimits(max_header_bytes=100)) == "limit_exceeded"
+    assert code_of(DATA, DecodeLimits(max_gaussians=4)) == "limit_exceeded"
+    assert code_of(DATA, DecodeLimits(max_levels=1)) == "limit_exceeded"
+    assert code_of(DATA, DecodeLimits(max_section_bytes=50)) == "limit_exceeded"
+    decode_archive(DATA, limits=DecodeLimits(max_gaussians=5, max_levels=2, max_expanded_gaussians=20))
+
+
+def test_expansion_beyond_the_limit_is_refused_before_expanding() -> None:
+    contents = random_contents(3, 0, 30, seed=2)
+    contents.bits[:] = True  # 3 x 2^30 Gaussians from a file of a few hundred bytes
+    data = encode_archive(contents)
+    assert len(data) < 8192
+    assert code_of(data) == "limit_exceeded"
+
+
+def _zstd(raw: bytes, **kwargs: Any) -> bytes:
+    return zstandard.ZstdCompressor(level=3, **kwargs).compress(raw)
+
+
+@pytest.mark.parametrize(
+    "name,payload,raw_length",
+    [
+        ("means", b"\x00" * 40, None),  # not zstd
+        ("means", _zstd(b"\0" * (1 << 24)), None),  # a bomb that declares 16 MiB where the header says 60 bytes
+        ("means", _zstd(b"\0" * 60, write_content_size=False), None),  # no declared size
+        ("means", _zstd(b"\0" * 60) + _zstd(b"\0" * 4), None),  # a second frame
+        ("means", _zstd(b"\0" * 60)[:-3] + b"\0\0\0", None),  # damaged block, right declared size
+        ("bits", _zstd(bytes([0, 0xFF])), 2),  # packed level with padding bits set, one level missing
+        ("bits", _zstd(bytes([2, 0, 0, 0])), 4),  # unknown block mode
+        ("bits", _zstd(bytes([1]) + write_varints([2, 2, 2]) + bytes([0, 0])), 6),  # runs sum to 4, not 5
+        ("bits", _zstd(bytes([1]) + write_varints([3, 1, 0, 4]) + bytes([0, 0])), 7),  # an empty inner run
+        ("bits", _zstd(bytes([1, 9]) + bytes([0, 0])), 4),  # more runs than rows allow
+        ("bits", _zstd(bytes([1, 1, 0x85, 0x80, 0x80, 0x80, 0x80, 0x00]) + bytes([0, 0])), 10),  # cut-short varint
+        ("bits", _zstd(bytes([1, 2, 0x81, 0x80, 0x80, 0x80, 0x80, 0x01, 0x05, 0, 0])), 11),  # 6-byte varint
+        ("bits", _zstd(bytes([1, 1, 0x85, 0x00, 0, 0])), 6),  # varint with a redundant zero byte
+        ("bits", _zstd(bytes([0, 0, 0, 0, 7])), 5),  # a byte after the last level
+    ],
+)
+def test_hostile_payloads_with_valid_checksums(name: str, payload: bytes, raw_length: int | None) -> None:
+    assert code_of(with_payload(DATA, name, payload, raw_length)) == "corrupt_section"
