@@ -90,11 +90,11 @@ class _Element:
     count: int
     properties: list[tuple[str, str, str | None]]  # (name, value type, list length type or None)
 
-    def row_bytes(self) -> int | None:
-        """Bytes per binary row, or None when a list property makes rows variable."""
-        if any(length is not None for _, _, length in self.properties):
-            return None
-        return sum(_TYPES[t][0] for _, t, _ in self.properties)
+    def min_row_bytes(self, ascii: bool) -> int:
+        """The fewest bytes a row can take: exact for binary rows without lists (a list may be empty)."""
+        if ascii:
+            return 2 * len(self.properties)  # every value takes at least one character and one separator
+        return sum(_TYPES[length or value][0] for _, value, length in self.properties)
 
 
 @dataclass
@@ -162,31 +162,15 @@ def _parse_header(head: bytes, path: Path) -> _Header:
 
 
 def _check_size(header: _Header, vertex: _Element, file_size: int, path: Path) -> None:
-    """Refuse headers that claim more data than the file holds, before anything is allocated for it."""
+    """Refuse headers that claim more rows than the file can hold, before plyfile allocates for them."""
     body = file_size - header.size
-    if header.format == "ascii":
-        # Every value takes at least one character and one separator.
-        needed = vertex.count * len(vertex.properties) * 2
-        if needed > body:
-            raise PlyError(
-                "truncated",
-                f"{path.name}: header claims {vertex.count} vertices but the {body}-byte body "
-                f"cannot hold them even at 2 bytes per value",
-            )
-        return
-    needed = 0
-    for element in header.elements:
-        row = element.row_bytes()
-        if row is None:
-            # Variable-length rows: only the data before this element can be checked exactly.
-            break
-        needed += element.count * row
-        if element is vertex:
-            break
+    ascii = header.format == "ascii"
+    needed = sum(e.count * e.min_row_bytes(ascii) for e in header.elements)
     if needed > body:
+        others = "" if header.elements == [vertex] else " and its other elements"
         raise PlyError(
             "truncated",
-            f"{path.name}: header claims {vertex.count} vertices ({needed} bytes of data) "
+            f"{path.name}: header claims {vertex.count} vertices{others}, at least {needed} bytes of data, "
             f"but the file holds only {body} bytes after the header",
         )
 

@@ -195,6 +195,15 @@ def test_header_claiming_more_vertices_than_the_file_holds(tmp_path: Path) -> No
     with pytest.raises(PlyError) as err:
         read_scene(hostile)
     assert err.value.code == "truncated"
+    # The vertices are all there, but a list element after them claims a billion rows.
+    faces = tmp_path / "faces.ply"
+    header_end = data.index(b"end_header")
+    faces.write_bytes(
+        data[:header_end] + b"element face 1000000000\nproperty list uchar int vertex_indices\n" + data[header_end:]
+    )
+    with pytest.raises(PlyError, match="other elements") as err:
+        read_scene(faces)
+    assert err.value.code == "truncated"
 
 
 def test_truncated_ascii_file(tmp_path: Path) -> None:
@@ -286,3 +295,14 @@ def test_every_real_scene_loads(shared_data: Path) -> None:
     with pytest.raises(PlyError, match="f_dc_0") as err:
         read_scene(shared_data / "snowmiku_plush_capture_mit/sparse/0/points3D.ply")
     assert err.value.code == "missing_property"
+
+
+def test_other_elements_are_ignored(tmp_path: Path) -> None:
+    cols = random_columns(6, 0, seed=9)
+    rows = np.empty(6, dtype=[(name, "<f4") for name in cols])
+    for name, v in cols.items():
+        rows[name] = v
+    faces = np.array([([0, 1, 2],), ([3, 4, 5, 1],)], dtype=[("vertex_indices", "O")])
+    elements = [PlyElement.describe(faces, "face"), PlyElement.describe(rows, "vertex")]
+    PlyData(elements, text=False).write(str(tmp_path / "mesh.ply"))
+    assert_bit_equal(load_scene(tmp_path / "mesh.ply"), expected_scene(cols, 0))
