@@ -1,0 +1,98 @@
+"""`symgs compress` and `symgs decompress`: the pipeline on local files, no server."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .cli import CliError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("compress", help="compress a scene (.ply) into a .symgs archive")
+    p.add_argument("scene", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, help="archive to write (.symgs)")
+    p.add_argument("--images", type=Path, help="posed images (NeRF-Synthetic or COLMAP folder)")
+    p.add_argument("--report", type=Path, help="write the JSON report here")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument("--psnr-budget", type=float, default=0.5, help="dB the mirrors may cost in total (default 0.5)")
+    p.add_argument("--max-levels", type=int, default=4)
+    p.add_argument("--iterations", type=int, default=200, help="optimisation steps per level")
+    p.add_argument("--resolution", type=int, default=192, help="longest side of training/evaluation views")
+    p.add_argument("--train-views", type=int, default=24)
+    p.add_argument("--eval-views", type=int, default=8)
+    p.add_argument("--no-mirrors", action="store_true", help="baseline: the codec alone")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_compress)
+
+    d = sub.add_parser("decompress", help="decode a .symgs archive to a scene file (format by extension)")
+    d.add_argument("archive", type=Path)
+    d.add_argument("-o", "--output", type=Path, required=True, help="output scene (.ply)")
+    d.set_defaults(func=_decompress)
+
+
+def _compress(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from symgs_core.config import CompressConfig
+    from symgs_core.pipeline import compress
+
+    if not args.scene.is_file():
+        raise CliError(f"scene file not found: {args.scene}")
+    if args.images is not None and not args.images.is_dir():
+        raise CliError(f"images folder not found: {args.images}")
+    try:
+        config = CompressConfig(
+            psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
+            resolution=args.resolution, train_views=args.train_views, eval_views=args.eval_views,
+            device=args.device, use_mirrors=not args.no_mirrors,
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    console = Console(stderr=True)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), console=console, disable=args.quiet) as bar:
+        task = bar.add_task("compress", total=1.0)
+
+        def on_progress(event) -> None:  # noqa: ANN001 - ProgressEvent
+            bar.update(task, completed=event.fraction, description=f"{event.stage}: {event.message}"[:60])
+
+        try:
+            result = compress(args.scene, images=args.images, config=config, progress=on_progress)
+        except ValueError as exc:  # PlyError, DatasetError and bad settings all say what is wrong
+            raise CliError(str(exc)) from exc
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_bytes(result.archive)
+    if args.report is not None:
+        args.report.write_text(json.dumps(result.report, indent=2))
+    r = result.report
+    levels = [lv for lv in r["levels"] if lv["accepted"]]
+    ratio = f"{r['ratio_to_ply']:.2f}x vs PLY, " if r["ratio_to_ply"] else ""
+    psnr = "lossless" if r["psnr"] is None else f"{r['psnr']:.2f} dB"
+    print(
+        f"{args.output}: {r['output_bytes']} bytes ({ratio}{r['ratio_to_baseline']:.2f}x vs baseline), "
+        f"{len(levels)} mirror level(s), {r['gaussians']['stored']}/{r['gaussians']['input']} Gaussians stored, "
+        f"PSNR {psnr}, SSIM {r['ssim']:.4f} against {r['psnr_reference']}"
+    )
+    return 0
+
+
+def _decompress(args: argparse.Namespace) -> int:
+    from symgs_core.codec import ArchiveError
+    from symgs_core.pipeline import decompress
+    from symgs_core.ply import save_scene
+
+    if not args.archive.is_file():
+        raise CliError(f"archive not found: {args.archive}")
+    if args.output.suffix.lower() != ".ply":
+        raise CliError(f"unsupported output format {args.output.suffix!r}: use .ply")
+    try:
+        scene = decompress(args.archive)
+    except ArchiveError as exc:
+        raise CliError(f"{args.archive}: {exc}") from exc
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    save_scene(scene, args.output)
+    print(f"{args.output}: {len(scene)} Gaussians, SH degree {scene.sh_degree}")
+    return 0

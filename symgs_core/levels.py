@@ -1,0 +1,184 @@
+"""The level loop: detect a mirror in the working set, drop its right side, fine-tune, and keep it only if the
+held-out PSNR stays above the floor; otherwise roll back and stop. The scene decides how many levels it gets."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from .config import CompressConfig
+from .optimize import LevelState, evaluate, optimize_level
+from .scene import GaussianScene
+from .views import ViewSet
+
+
+@dataclass
+class LevelRecord:
+    level: int
+    normal: list[float]
+    offset: float
+    votes: float
+    left: int
+    right: int
+    coverage: float
+    psnr_before: float
+    psnr_after: float
+    ssim: float
+    stored_after: int
+    seconds: float
+    accepted: bool
+    reason: str
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def apply_mirror(state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor, right: torch.Tensor) -> LevelState:
+    """The next level's state: ``right`` members dropped, ``left`` marked in a new bit column, the plane appended.
+
+    ``left`` and ``right`` index the current stored set.
+    """
+    n = len(state.stored)
+    device = state.stored.device
+    keep = torch.ones(n, dtype=torch.bool, device=device)
+    keep[right.to(device)] = False
+    is_left = torch.zeros(n, dtype=torch.bool, device=device)
+    is_left[left.to(device)] = True
+    if bool((is_left & ~keep).any()):
+        raise ValueError("a Gaussian cannot be both left and right of one mirror")
+    dtype = state.normals.dtype
+    return LevelState(
+        stored=state.stored.select(keep),
+        normals=torch.cat([state.normals, normal.to(device, dtype).reshape(1, 3)]),
+        offsets=torch.cat([state.offsets, torch.tensor([float(offset)], device=device, dtype=dtype)]),
+        bits=torch.cat([state.bits[keep], is_left[keep][:, None]], dim=1),
+    )
+
+
+def try_level(
+    state: LevelState,
+    mirror,  # noqa: ANN001 - detect.Mirror
+    views: ViewSet,
+    *,
+    level: int,
+    config: CompressConfig,
+    floor: float,
+    extent: float,
+    report,  # noqa: ANN001 - pipeline._Reporter
+) -> tuple[LevelState, LevelRecord]:
+    """Apply one detected mirror, fine-tune and judge it. Returns the candidate state and its record."""
+    t0 = time.perf_counter()
+    normal = torch.tensor(mirror.plane.normal)
+    candidate = apply_mirror(state, normal, mirror.plane.offset, mirror.left, mirror.right)
+    psnr_before, _ = evaluate(candidate.expanded(), views.test, views.background)
+
+    def on_step(step: int, loss: float) -> None:
+        if step % 10 == 0:
+            report("levels", (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
+                   f"level {level}: step {step}/{config.iterations} loss {loss:.4f}", level)
+
+    torch.manual_seed(config.seed + 1000 * (level + 1))
+    tuned = optimize_level(
+        candidate, views.train, views.background, iterations=config.iterations, extent=extent,
+        seed=config.seed + level, should_stop=report.should_stop, on_step=on_step,
+    )
+    psnr_after, ssim_after = evaluate(tuned.expanded(), views.test, views.background)
+    if psnr_after < psnr_before:  # the fine-tune must pay for itself too: exact twins need none
+        tuned = candidate.detach()
+        psnr_after, ssim_after = evaluate(tuned.expanded(), views.test, views.background)
+    accepted = psnr_after >= floor
+    record = LevelRecord(
+        level=level,
+        normal=[float(v) for v in tuned.normals[-1]],
+        offset=float(tuned.offsets[-1]),
+        votes=float(mirror.votes),
+        left=int(len(mirror.left)),
+        right=int(len(mirror.right)),
+        coverage=float(mirror.coverage),
+        psnr_before=psnr_before,
+        psnr_after=psnr_after,
+        ssim=ssim_after,
+        stored_after=len(tuned.stored),
+        seconds=time.perf_counter() - t0,
+        accepted=accepted,
+        reason="within budget" if accepted else f"held-out PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB",
+    )
+    return tuned, record
+
+
+def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelRecord], done: bool) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "fingerprint": fingerprint,
+        "stored": {k: v.detach().cpu() for k, v in state.stored.tensors().items()},
+        "normals": state.normals.detach().cpu(),
+        "offsets": state.offsets.detach().cpu(),
+        "bits": state.bits.cpu(),
+        "records": [r.as_dict() for r in records],
+        "done": done,
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)  # atomic: a worker killed mid-write leaves the previous checkpoint intact
+
+
+def _load_checkpoint(path: Path, fingerprint: str, device: torch.device):  # noqa: ANN202
+    if not path.exists():
+        return None
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception:  # noqa: BLE001 - an unreadable checkpoint is recomputed, never trusted
+        return None
+    if payload.get("fingerprint") != fingerprint:
+        return None
+    state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
+    return state, [LevelRecord(**r) for r in payload["records"]], bool(payload["done"])
+
+
+def run_levels(
+    source: GaussianScene,
+    views: ViewSet,
+    *,
+    config: CompressConfig,
+    floor: float,
+    extent: float,
+    report,  # noqa: ANN001 - pipeline._Reporter
+    checkpoint: Path | None,
+    fingerprint: str,
+) -> tuple[LevelState, list[LevelRecord]]:
+    """Accept mirror levels while they pay for themselves; resume from ``checkpoint`` when it matches."""
+    from .detect import DetectConfig, detect
+
+    state, records, done = LevelState.plain(source), [], False
+    if checkpoint is not None:
+        resumed = _load_checkpoint(checkpoint, fingerprint, source.device)
+        if resumed is not None:
+            state, records, done = resumed
+    detect_config = replace(DetectConfig(), **{**config.detect, "max_mirrors": 1})
+    while not done and state.normals.shape[0] < config.max_levels:
+        level = state.normals.shape[0]
+        t0 = time.perf_counter()
+        report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
+        mirrors = detect(state.stored, detect_config)
+        report.timed("detect", time.perf_counter() - t0)
+        if not mirrors:
+            done = True
+        else:
+            t0 = time.perf_counter()
+            candidate, record = try_level(
+                state, mirrors[0], views, level=level, config=config, floor=floor, extent=extent, report=report
+            )
+            report.timed("optimize", time.perf_counter() - t0)
+            records.append(record)
+            if record.accepted:
+                state = candidate
+            else:
+                done = True
+        if checkpoint is not None:
+            _save_checkpoint(checkpoint, fingerprint, state, records, done)
+    report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")
+    return state, records

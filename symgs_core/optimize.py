@@ -1,0 +1,139 @@
+"""Mirror-aware optimisation of one level.
+
+The rendered scene is the stored working set expanded through every mirror (``hierarchy.expand``); Adam trains the
+working set's attributes and the newest mirror's plane, with the 3DGS loss 0.8 L1 + 0.2 (1 - SSIM) and the 3DGS
+learning rates (positions scaled by the scene's extent).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .cameras import Camera
+from .hierarchy import expand
+from .metrics import ssim
+from .progress import Cancelled, StopFn
+from .render import render
+from .scene import GaussianScene
+
+LAMBDA_DSSIM = 0.2
+
+
+def mse_to_psnr(mse: float) -> float:
+    """PSNR in dB of a mean squared error on [0, 1] images; +inf for a perfect match."""
+    return -10.0 * math.log10(mse) if mse > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """3DGS learning rates; ``means`` and the plane offset are multiplied by the scene extent."""
+
+    means: float = 1.6e-4
+    quats: float = 1e-3
+    scales: float = 5e-3
+    opacities: float = 2.5e-2
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 2.5e-3 / 20.0
+    plane: float = 1e-3
+
+
+@dataclass
+class LevelState:
+    """What a level trains and what the archive stores: the working set, the planes (level 0 first), the bits."""
+
+    stored: GaussianScene
+    normals: Tensor  # [L+1, 3]
+    offsets: Tensor  # [L+1]
+    bits: Tensor  # [|S|, L+1] bool
+
+    @staticmethod
+    def plain(scene: GaussianScene) -> LevelState:
+        """No mirror: the scene stored as it is."""
+        dev, dtype = scene.device, scene.means.dtype
+        return LevelState(
+            scene, torch.zeros(0, 3, device=dev, dtype=dtype), torch.zeros(0, device=dev, dtype=dtype),
+            torch.zeros(len(scene), 0, dtype=torch.bool, device=dev),
+        )
+
+    def expanded(self) -> GaussianScene:
+        return expand(self.stored, self.normals, self.offsets, self.bits)[0]
+
+    def detach(self) -> LevelState:
+        return LevelState(self.stored.detach().clone(), self.normals.detach().clone(), self.offsets.detach().clone(), self.bits.clone())
+
+
+def loss_fn(image: Tensor, target: Tensor) -> Tensor:
+    l1 = (image - target).abs().mean()
+    return (1.0 - LAMBDA_DSSIM) * l1 + LAMBDA_DSSIM * (1.0 - ssim(image, target))
+
+
+@torch.no_grad()
+def evaluate(scene: GaussianScene, views: list[tuple[Camera, Tensor]], background: Tensor) -> tuple[float, float]:
+    """Mean PSNR (dB, from the mean MSE over views) and mean SSIM of ``scene`` against the views' targets."""
+    if not views:
+        raise ValueError("evaluate needs at least one view")
+    mse, ssims = 0.0, []
+    for cam, target in views:
+        image = render(scene, cam, background).image
+        mse += float(((image - target) ** 2).mean())
+        ssims.append(float(ssim(image, target)))
+    mse /= len(views)
+    return mse_to_psnr(mse), sum(ssims) / len(ssims)
+
+
+def optimize_level(
+    state: LevelState,
+    views: list[tuple[Camera, Tensor]],
+    background: Tensor,
+    *,
+    iterations: int,
+    extent: float,
+    train_planes: int = 1,
+    lr: LearningRates = LearningRates(),
+    seed: int = 0,
+    should_stop: StopFn | None = None,
+    on_step=None,  # noqa: ANN001 - Callable[[int, float], None]: step index, loss
+) -> LevelState:
+    """Fine-tune ``state`` for ``iterations`` Adam steps on ``views``; returns a new, detached state.
+
+    The last ``train_planes`` mirrors (the newest levels) are trainable along with every stored attribute.
+    """
+    if iterations == 0 or not views:
+        return state.detach()
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in state.stored.tensors().items()}
+    levels = state.normals.shape[0]
+    k = min(train_planes, levels)
+    frozen_n, frozen_g = state.normals[: levels - k].detach(), state.offsets[: levels - k].detach()
+    train_n = state.normals[levels - k :].detach().clone().requires_grad_(True)
+    train_g = state.offsets[levels - k :].detach().clone().requires_grad_(True)
+    groups = [{"params": [params[name]], "lr": getattr(lr, name) * (extent if name == "means" else 1.0)} for name in params]
+    if k:
+        groups += [{"params": [train_n], "lr": lr.plane}, {"params": [train_g], "lr": lr.plane * extent}]
+    optimizer = torch.optim.Adam(groups, eps=1e-15)
+    rng = random.Random(seed)
+    order: list[int] = []
+    for step in range(iterations):
+        if should_stop is not None and should_stop():
+            raise Cancelled()
+        if not order:
+            order = list(range(len(views)))
+            rng.shuffle(order)
+        cam, target = views[order.pop()]
+        normals = torch.cat([frozen_n, train_n / train_n.norm(dim=-1, keepdim=True)])
+        offsets = torch.cat([frozen_g, train_g])
+        scene, _ = expand(GaussianScene(**params), normals, offsets, state.bits)
+        loss = loss_fn(render(scene, cam, background).image, target)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if on_step is not None:
+            on_step(step, float(loss.detach()))
+    with torch.no_grad():
+        normals = torch.cat([frozen_n, train_n / train_n.norm(dim=-1, keepdim=True)])
+        offsets = torch.cat([frozen_g, train_g])
+    return LevelState(GaussianScene(**params).detach(), normals.detach(), offsets.detach(), state.bits.clone())
