@@ -5,9 +5,10 @@ Each level's column is stored on its own, as whichever of two blocks zstandard p
   mode 1, runs:    a varint R, then R varint run lengths alternating false, true, false, ... from a false run;
                    only the first run may be 0 (when the column starts with true), and the runs sum to N.
 Varints are LEB128 (7 bits per byte, low first, at most 5 bytes, no redundant zero byte). The blocks of all levels,
-level 0 first, form one zstd frame. Measured on 100k rows: packed wins on random columns (12.5 kB for p = 0.5,
-3.8 kB for p = 0.05, runs 4.5 kB), runs win once the rows are ordered (runs of mean length 30: 2.8 kB vs 3.6 kB;
-a column sorted into two runs: 16 bytes), so the encoder picks per level.
+level 0 first, form one zstd frame. Measured on 100k rows (zstd level 9): packed wins on random columns (12.5 kB
+against 16.0 kB as runs for p = 0.5; 4.5 kB against 4.8 kB for p = 0.05), runs win once the rows are ordered (runs
+of mean length 30: 2.8 kB against 3.7 kB; a column sorted into two runs: 16 bytes), so the encoder picks per level.
+Level 19 saved nothing on 1M-row matrices and took 8x longer.
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ def _packed_block(column: np.ndarray) -> bytes:
     return bytes([PACKED]) + np.packbits(column).tobytes()
 
 
-def encode_masks(bits: np.ndarray, level: int = 19) -> bytes:
+def encode_masks(bits: np.ndarray, level: int = 9) -> bytes:
     """The decoded byte stream (before zstd) of a bool matrix [N, L+1]: per level, the smaller block."""
     if bits.dtype != np.bool_ or bits.ndim != 2:
         raise ValueError(f"masks are a bool matrix [N, L+1], got {bits.dtype} of shape {bits.shape}")
@@ -149,7 +150,7 @@ def max_raw_length(n: int, levels: int) -> int:
 class MaskZstd:
     """The level bit matrix as per-level packed-or-runs blocks in one zstd frame."""
 
-    level: int = 19
+    level: int = 9
     name: str = field(default="mask-zstd", init=False)
     kind: SectionKind = field(default="bool", init=False)
 
