@@ -1,0 +1,140 @@
+"""A compression job as clients see it (``GET /v1/jobs/{id}``) and pages of jobs (``GET /v1/jobs``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from .params import JobParams
+
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+TERMINAL_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+Queue = Literal["gpu", "cpu"]
+
+
+class JobError(BaseModel):
+    code: str = Field(description="machine-readable: bad_sh_count, bad_dataset, time_limit, worker_lost, ...")
+    message: str
+
+
+class MirrorSummary(BaseModel):
+    """An accepted mirror level: the plane n.x = offset and what it saved."""
+
+    level: int
+    normal: list[float] = Field(min_length=3, max_length=3)
+    offset: float
+    left: int
+    right: int
+    psnr_after: float | None
+
+
+class JobMetrics(BaseModel):
+    """Headline figures of a finished job; the full report is at ``/v1/jobs/{id}/report``."""
+
+    input_bytes: int
+    output_bytes: int
+    ratio_to_ply: float
+    ratio_to_baseline: float
+    psnr: float | None = Field(description="dB; null when infinite (a lossless result)")
+    ssim: float | None
+    seconds: float = Field(description="pipeline time, all stages")
+
+
+class JobLinks(BaseModel):
+    self: str
+    events: str
+    result: str
+    result_ply: str
+    report: str
+
+
+class SceneInfo(BaseModel):
+    filename: str
+    bytes: int
+    gaussians: int
+    sh_degree: int
+
+
+class ImagesInfo(BaseModel):
+    layout: Literal["nerf_synthetic", "colmap"]
+    images: int
+    bytes: int = Field(description="extracted size")
+
+
+class Job(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "3f2c9a1e0b7d4c55a8e6f1d2c3b4a596",
+                    "state": "running",
+                    "stage": "optimize",
+                    "level": 0,
+                    "progress": 0.42,
+                    "message": "level 0: step 80/200",
+                    "params": {"preset": "balanced", "psnr_budget": 0.5, "max_levels": 4, "device": "auto"},
+                    "queue": "cpu",
+                    "scene": {"filename": "chair.ply", "bytes": 1240000, "gaussians": 5000, "sh_degree": 3},
+                    "images": None,
+                    "mirrors": [],
+                    "metrics": None,
+                    "artifacts": [],
+                    "error": None,
+                    "attempts": 1,
+                    "cancel_requested": False,
+                    "created_at": 1767225600.0,
+                    "started_at": 1767225601.2,
+                    "finished_at": None,
+                    "updated_at": 1767225620.9,
+                    "links": {
+                        "self": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596",
+                        "events": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/events",
+                        "result": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result",
+                        "result_ply": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.ply",
+                        "report": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/report",
+                    },
+                }
+            ]
+        }
+    )
+
+    id: str
+    state: JobState
+    stage: str | None = Field(None, description="pipeline stage: load, views, detect, optimize, evaluate, encode, ...")
+    level: int | None = Field(None, description="mirror level being worked on")
+    progress: float = Field(ge=0, le=1)
+    message: str = ""
+    params: JobParams
+    queue: Queue
+    scene: SceneInfo
+    images: ImagesInfo | None = None
+    mirrors: list[MirrorSummary] = Field(default_factory=list, description="accepted mirror levels")
+    metrics: JobMetrics | None = None
+    artifacts: list[str] = Field(
+        default_factory=list,
+        description="result files of a succeeded job: result.symgs, result.ply, report.json, charts/<name>.png, ...",
+    )
+    error: JobError | None = None
+    attempts: int = Field(0, description="runs started; above 1 when a worker was lost and the job resumed")
+    cancel_requested: bool = False
+    created_at: float = Field(description="Unix time, seconds")
+    started_at: float | None = None
+    finished_at: float | None = None
+    updated_at: float
+    links: JobLinks
+
+
+class JobPage(BaseModel):
+    """Jobs newest first. Ask for the next page with ``offset=next_offset`` until it is null."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"items": [], "total": 0, "offset": 0, "limit": 20, "next_offset": None}]}
+    )
+
+    items: list[Job]
+    total: int
+    offset: int
+    limit: int
+    next_offset: int | None
+

@@ -1,0 +1,67 @@
+"""The HTTP API: ``create_app()`` builds it (``symgs serve`` runs it with uvicorn).
+
+This process never imports torch: it checks uploads by their headers, stores them, records
+the job and queues its id; workers do the rest.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import redis.asyncio as aioredis
+from fastapi import FastAPI
+
+from worker.celery_app import make_celery
+from worker.settings import Settings
+from worker.storage import storage_from_settings
+from worker.store import JobStore
+
+from .errors import install_handlers
+from .metrics import make_registry
+from .routes import events, jobs, ops, results
+
+API_VERSION = "1.0.0"
+DESCRIPTION = """\
+Compression of 3D Gaussian Splatting scenes that removes reflective symmetry (SymGS).
+
+Submit a trained scene (`.ply`, graphdeco layout) and optionally the posed images it was trained from; follow the
+job's progress; download the compressed archive, the decoded scene and the metrics.
+
+When the server is configured with API keys, send one as `Authorization: Bearer <key>`; each job belongs to the key
+that created it, and other keys get 404 for it. Errors are `{"error": {"code": "...", "message": "..."}}`.
+"""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        await app.state.aredis.aclose()
+        app.state.store.r.close()
+
+    app = FastAPI(
+        title="SymGS",
+        version=API_VERSION,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        openapi_tags=[
+            {"name": "jobs", "description": "Submit, inspect, list, cancel and delete compression jobs"},
+            {"name": "events", "description": "Live progress as Server-Sent Events"},
+            {"name": "results", "description": "Archives, decoded scenes, reports and charts of finished jobs"},
+            {"name": "operations", "description": "Health, readiness and metrics"},
+        ],
+    )
+    store = JobStore.from_url(settings.redis_url)
+    app.state.settings = settings
+    app.state.store = store
+    app.state.aredis = aioredis.Redis.from_url(settings.redis_url, decode_responses=True)
+    app.state.storage = storage_from_settings(settings)
+    app.state.celery = make_celery(settings)
+    app.state.registry = make_registry(store, settings)
+    install_handlers(app)
+    for module in (jobs, events, results, ops):
+        app.include_router(module.router)
+    return app

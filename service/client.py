@@ -1,0 +1,168 @@
+"""HTTP client of the SymGS API, for batch use and the command line."""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
+
+# Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
+_DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
+
+
+class ApiClientError(Exception):
+    """An error answer of the API: HTTP status, machine-readable code and message."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+
+
+@dataclass(frozen=True)
+class Event:
+    id: str
+    event: JobEvent
+
+
+def _raise_for(response: httpx.Response) -> None:
+    if response.is_success:
+        return
+    try:
+        error = response.json()["error"]
+        code, message = error["code"], error["message"]
+    except (ValueError, KeyError, TypeError):
+        code, message = "http_error", response.text[:200]
+    raise ApiClientError(response.status_code, code, message)
+
+
+def zip_folder(folder: str | os.PathLike[str], dest: str | os.PathLike[str]) -> Path:
+    """Zip a dataset folder (the archive holds the folder itself, by name) for the ``images`` upload."""
+    folder, dest = Path(folder), Path(dest)
+    if not folder.is_dir():
+        raise ValueError(f"{folder} is not a folder")
+    with zipfile.ZipFile(dest, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file() and not path.is_symlink():
+                zf.write(path, (Path(folder.name) / path.relative_to(folder)).as_posix())
+    return dest
+
+
+class SymgsClient:
+    def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 300.0) -> None:
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> SymgsClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def submit(
+        self,
+        scene: str | os.PathLike[str],
+        *,
+        images: str | os.PathLike[str] | None = None,
+        params: dict[str, Any] | None = None,
+        idempotency_key: str | None = None,
+    ) -> Job:
+        """Upload a scene (and a zip/tar of its dataset) and return the queued job."""
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        with open(scene, "rb") as scene_file:
+            files: dict[str, Any] = {"scene": (Path(scene).name, scene_file, "application/octet-stream")}
+            data = {"params": json.dumps(params)} if params else None
+            if images is None:
+                response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+            else:
+                with open(images, "rb") as images_file:
+                    files["images"] = (Path(images).name, images_file, "application/octet-stream")
+                    response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+        _raise_for(response)
+        return Job.model_validate(response.json())
+
+    def job(self, job_id: str) -> Job:
+        response = self.http.get(f"/v1/jobs/{job_id}")
+        _raise_for(response)
+        return Job.model_validate(response.json())
+
+    def jobs(self, *, state: str | None = None, offset: int = 0, limit: int = 20) -> JobPage:
+        query: dict[str, Any] = {"offset": offset, "limit": limit}
+        if state is not None:
+            query["state"] = state
+        response = self.http.get("/v1/jobs", params=query)
+        _raise_for(response)
+        return JobPage.model_validate(response.json())
+
+    def cancel(self, job_id: str) -> Job:
+        response = self.http.post(f"/v1/jobs/{job_id}:cancel")
+        _raise_for(response)
+        return Job.model_validate(response.json())
+
+    def delete(self, job_id: str) -> None:
+        _raise_for(self.http.delete(f"/v1/jobs/{job_id}"))
+
+    def events(self, job_id: str, *, last_event_id: str | None = None) -> Iterator[Event]:
+        """The job's events from the start (or after ``last_event_id``) until its final state."""
+        headers = {"Last-Event-ID": last_event_id} if last_event_id else {}
+        with self.http.stream("GET", f"/v1/jobs/{job_id}/events", headers=headers, timeout=None) as response:
+            if not response.is_success:
+                response.read()
+                _raise_for(response)
+            fields: dict[str, str] = {}
+            for line in response.iter_lines():
+                if line == "":
+                    if "data" in fields:
+                        yield Event(fields.get("id", ""), JobEvent.model_validate_json(fields["data"]))
+                    fields = {}
+                elif not line.startswith(":"):
+                    name, _, value = line.partition(":")
+                    fields[name] = value[1:] if value.startswith(" ") else value
+
+    def wait(self, job_id: str, on_event: Callable[[JobEvent], None] | None = None) -> Job:
+        """Follow the job's events until it finishes (reconnecting after where it left off); the final job."""
+        last: str | None = None
+        while True:
+            try:
+                for item in self.events(job_id, last_event_id=last):
+                    last = item.id
+                    if on_event is not None:
+                        on_event(item.event)
+            except httpx.TransportError:
+                continue  # the connection dropped: resume after the last event seen
+            job = self.job(job_id)
+            if job.state in TERMINAL_STATES:
+                return job
+
+    def download(self, job_id: str, name: str, dest: str | os.PathLike[str]) -> Path:
+        """Save a result file (result.symgs, result.ply, result.spz, report.json, charts/<name>.png) to ``dest``."""
+        path = _DOWNLOAD_PATHS.get(name, name)
+        dest = Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        with self.http.stream("GET", f"/v1/jobs/{job_id}/{path}") as response:
+            if not response.is_success:
+                response.read()
+                _raise_for(response)
+            with open(dest, "wb") as out:
+                for chunk in response.iter_bytes(1 << 20):
+                    out.write(chunk)
+        return dest
+
+    def fetch(self, job_id: str, folder: str | os.PathLike[str]) -> list[Path]:
+        """Save every result file of a finished job into ``folder``; returns the paths written."""
+        job = self.job(job_id)
+        folder = Path(folder)
+        written = []
+        for name in job.artifacts:
+            written.append(self.download(job_id, name, folder / name))
+        return written

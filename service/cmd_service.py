@@ -1,0 +1,185 @@
+"""`symgs serve | worker | submit | status | fetch | demo`: run the service and use it over HTTP."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run the HTTP API (uvicorn)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 for all)")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=1, help="API processes")
+    p.set_defaults(func=serve)
+
+    p = sub.add_parser("worker", help="run a Celery worker for the gpu or cpu queue")
+    p.add_argument("--mode", choices=("gpu", "cpu"), required=True)
+    p.add_argument("--concurrency", type=int, default=1, help="jobs at once (cpu mode only; gpu runs one)")
+    p.add_argument("--loglevel", default="INFO")
+    p.set_defaults(func=worker)
+
+    def client_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--server", default=os.environ.get("SYMGS_SERVER", DEFAULT_SERVER), help="API base URL")
+        p.add_argument("--api-key", default=os.environ.get("SYMGS_API_KEY"), help="Bearer key (or SYMGS_API_KEY)")
+
+    p = sub.add_parser("submit", help="upload scenes for compression and follow their progress")
+    p.add_argument("scenes", nargs="+", type=Path, metavar="SCENE.ply")
+    p.add_argument("--images", type=Path, help="dataset folder (NeRF-Synthetic or COLMAP) of the one scene")
+    p.add_argument("--params", help="job parameters as JSON, or @file.json")
+    p.add_argument("--no-wait", action="store_true", help="print the job ids and return")
+    p.add_argument("-o", "--output", type=Path, help="download each finished job's results into OUTPUT/<scene>/")
+    client_options(p)
+    p.set_defaults(func=submit)
+
+    p = sub.add_parser("status", help="show a job")
+    p.add_argument("job_id")
+    p.add_argument("--json", action="store_true", help="print the job as JSON")
+    client_options(p)
+    p.set_defaults(func=status)
+
+    p = sub.add_parser("fetch", help="download a finished job's results")
+    p.add_argument("job_id")
+    p.add_argument("-o", "--output", type=Path, required=True, help="folder to write into")
+    client_options(p)
+    p.set_defaults(func=fetch)
+
+    p = sub.add_parser("demo", help="run the whole service locally on a generated symmetric scene")
+    p.add_argument("-o", "--output", type=Path, default=Path("symgs-demo"), help="folder for the results")
+    p.add_argument("--gaussians", type=int, default=4000)
+    p.set_defaults(func=demo)
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers)
+    return 0
+
+
+def worker(args: argparse.Namespace) -> int:
+    from worker.launch import run_worker
+
+    from .cli import CliError
+
+    try:
+        run_worker(args.mode, concurrency=args.concurrency, loglevel=args.loglevel)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    return 0
+
+
+def _params(text: str | None) -> dict | None:
+    from .cli import CliError
+
+    if text is None:
+        return None
+    try:
+        raw = Path(text[1:]).read_text() if text.startswith("@") else text
+        value = json.loads(raw)
+    except (OSError, ValueError) as exc:
+        raise CliError(f"--params: {exc}") from None
+    if not isinstance(value, dict):
+        raise CliError("--params must be a JSON object")
+    return value
+
+
+def _client(args: argparse.Namespace):  # noqa: ANN202 - SymgsClient, imported lazily
+    from .client import SymgsClient
+
+    return SymgsClient(args.server, args.api_key)
+
+
+def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI errors
+    def wrapped(args: argparse.Namespace) -> int:
+        import httpx
+
+        from .cli import CliError
+        from .client import ApiClientError
+
+        try:
+            return fn(args)
+        except ApiClientError as exc:
+            raise CliError(str(exc)) from None
+        except httpx.TransportError as exc:
+            raise CliError(f"cannot reach {args.server}: {exc}") from None
+
+    return wrapped
+
+
+@_api_errors
+def submit(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from .cli import CliError
+    from .client import zip_folder
+    from .progress_view import follow, jobs_table
+
+    if args.images is not None and len(args.scenes) != 1:
+        raise CliError("--images belongs to one scene; submit scenes with datasets one at a time")
+    for scene in args.scenes:
+        if not scene.is_file():
+            raise CliError(f"{scene} is not a file")
+    params = _params(args.params)
+    console = Console()
+    with _client(args) as client, tempfile.TemporaryDirectory() as tmp:
+        archive = None
+        if args.images is not None:
+            archive = zip_folder(args.images, Path(tmp) / f"{args.images.name}.zip")
+        jobs = {}
+        for scene in args.scenes:
+            job = client.submit(scene, images=archive, params=params)
+            jobs[job.id] = scene.name
+            console.print(f"{scene}: job {job.id} ({job.queue} queue)")
+        if args.no_wait:
+            return 0
+        finals = follow(client, jobs, console)
+        console.print(jobs_table([(jobs[i], finals[i]) for i in jobs]))
+        if args.output is not None:
+            for job_id, label in jobs.items():
+                if finals[job_id].state == "succeeded":
+                    client.fetch(job_id, args.output / Path(label).stem)
+            console.print(f"results in {args.output}/")
+    return 0 if all(job.state == "succeeded" for job in finals.values()) else 1
+
+
+@_api_errors
+def status(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from .progress_view import jobs_table
+
+    with _client(args) as client:
+        job = client.job(args.job_id)
+    if args.json:
+        print(job.model_dump_json(indent=2))
+        return 0
+    console = Console()
+    console.print(f"{job.id}: {job.state}, stage {job.stage}, {job.progress:.0%} {job.message}")
+    if job.metrics is not None or job.error is not None:
+        console.print(jobs_table([(job.scene.filename, job)]))
+    return 0
+
+
+@_api_errors
+def fetch(args: argparse.Namespace) -> int:
+    from .cli import CliError
+
+    with _client(args) as client:
+        job = client.job(args.job_id)
+        if job.state != "succeeded":
+            raise CliError(f"job {job.id} is {job.state}; only succeeded jobs have results")
+        for path in client.fetch(args.job_id, args.output):
+            print(path)
+    return 0
+
+
+def demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(args.output, gaussians=args.gaussians)

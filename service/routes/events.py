@@ -1,0 +1,85 @@
+"""``GET /v1/jobs/{id}/events``: a job's state and progress events as Server-Sent Events, replayable."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+import redis.asyncio as aioredis
+from fastapi import APIRouter, Header, Request
+from sse_starlette import EventSourceResponse
+
+from api_schemas import TERMINAL_STATES
+from worker.store import events_key, job_key
+
+from ..deps import OwnerDep, StoreDep
+from ..errors import ApiError, error_responses
+from ..job_view import owned_record
+
+router = APIRouter(prefix="/v1/jobs", tags=["events"])
+_STREAM_ID = re.compile(r"^\d{1,20}-\d{1,20}$")
+_WAIT_MS = 10_000  # block this long for new events before checking that the job still exists
+_BATCH = 200
+
+
+async def job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterator[dict]:
+    """SSE messages of a job's stream after id ``after``, ending with the event of a final state."""
+    key = events_key(job_id)
+    while True:
+        entries = await r.xrange(key, min=f"({after}", count=_BATCH)
+        for entry_id, fields in entries:
+            after = entry_id
+            data = fields["data"]
+            event = json.loads(data)
+            yield {"id": entry_id, "event": event["kind"], "data": data}
+            if event["kind"] == "state" and event["state"] in TERMINAL_STATES:
+                return
+        if entries:
+            continue
+        state = await r.hget(job_key(job_id), "state")
+        if state is None:
+            return  # deleted
+        if state in TERMINAL_STATES:
+            # Its final event was sent before `after` (a replay from past the end), or has just been added.
+            if not await r.xrange(key, min=f"({after}", count=1):
+                return
+            continue
+        await r.xread({key: after}, count=1, block=_WAIT_MS)
+
+
+@router.get(
+    "/{job_id}/events",
+    summary="Follow a job's progress (Server-Sent Events)",
+    description="Each message has `event` (`state` or `progress`), `id` (its position in the job's event stream) "
+    "and `data` (a JobEvent as JSON). The stream starts from the job's first event, or after `Last-Event-ID`, and "
+    "ends after the event of a final state (succeeded, failed, cancelled).",
+    response_class=EventSourceResponse,
+    responses={
+        200: {
+            "description": "an event stream of JobEvent messages",
+            "content": {
+                "text/event-stream": {
+                    "schema": {"type": "string"},
+                    "example": 'id: 1767225600000-0\nevent: state\ndata: {"kind": "state", "state": "queued", '
+                    '"stage": null, "level": null, "progress": 0.0, "message": "", "time": 1767225600.0}\n\n',
+                }
+            },
+        },
+        **error_responses(401, 404, 422),
+    },
+)
+def get_events(
+    job_id: str,
+    request: Request,
+    owner: OwnerDep,
+    store: StoreDep,
+    last_event_id: Annotated[str | None, Header(description="resume after this event id")] = None,
+) -> EventSourceResponse:
+    owned_record(store, owner, job_id)
+    after = last_event_id or "0-0"
+    if not _STREAM_ID.match(after):
+        message = f"Last-Event-ID must be a stream id like 1767225600000-0, got {after[:40]!r}"
+        raise ApiError(422, "bad_last_event_id", message)
+    return EventSourceResponse(job_events(request.app.state.aredis, job_id, after), ping=15)

@@ -1,0 +1,100 @@
+"""``/v1/jobs/{id}/...``: the results of a finished job."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path
+from fastapi.responses import FileResponse
+
+from api_schemas import Report
+from worker.storage import Storage
+from worker.store import JobStore
+
+from ..deps import OwnerDep, StorageDep, StoreDep
+from ..errors import ApiError, error_responses
+from ..job_view import RETRY_AFTER_S, owned_record
+
+router = APIRouter(prefix="/v1/jobs", tags=["results"])
+_ERRORS = error_responses(401, 404, 409)
+
+
+def _artifact(
+    job_id: str, name: str, owner: str, store: JobStore, storage: Storage, media_type: str, filename: str
+) -> FileResponse:
+    record = owned_record(store, owner, job_id)
+    if record.state in ("queued", "running"):
+        raise ApiError(409, "not_ready", f"job {job_id} is {record.state}", headers={"Retry-After": RETRY_AFTER_S})
+    if record.state != "succeeded":
+        raise ApiError(409, "no_result", f"job {job_id} {record.state}; it has no results")
+    path = storage.artifact_path(job_id, name)
+    if path is None:
+        raise ApiError(404, "artifact_missing", f"job {job_id} has no {name}")
+    return FileResponse(path, media_type=media_type, filename=filename)
+
+
+def _binary(description: str, media_type: str = "application/octet-stream") -> dict:
+    content = {media_type: {"schema": {"type": "string", "format": "binary"}}}
+    return {200: {"description": description, "content": content}}
+
+
+@router.get(
+    "/{job_id}/result",
+    summary="Download the compressed archive",
+    description="The `.symgs` archive; `symgs decompress` or `symgs_core.decompress` decodes it.",
+    response_class=FileResponse,
+    responses={**_binary("the .symgs archive"), **_ERRORS},
+)
+def get_result(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    return _artifact(job_id, "result.symgs", owner, store, storage, "application/octet-stream", f"{job_id}.symgs")
+
+
+@router.get(
+    "/{job_id}/result.ply",
+    summary="Download the decoded scene as PLY",
+    description="The decoded scene in the graphdeco PLY layout that 3DGS viewers read.",
+    response_class=FileResponse,
+    responses={**_binary("graphdeco PLY", "application/x-ply"), **_ERRORS},
+)
+def get_result_ply(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    return _artifact(job_id, "result.ply", owner, store, storage, "application/x-ply", f"{job_id}.ply")
+
+
+@router.get(
+    "/{job_id}/result.spz",
+    summary="Download the decoded scene as .spz",
+    description="The decoded scene in Niantic's .spz format, when the server's codec writes it (404 otherwise).",
+    response_class=FileResponse,
+    responses={**_binary(".spz (gzip)"), **_ERRORS},
+)
+def get_result_spz(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    return _artifact(job_id, "result.spz", owner, store, storage, "application/octet-stream", f"{job_id}.spz")
+
+
+@router.get(
+    "/{job_id}/report",
+    summary="Get the metrics report",
+    description="Sizes, compression ratios, PSNR/SSIM, time per stage, every mirror level tried.",
+    response_class=FileResponse,
+    responses={200: {"model": Report, "description": "the report"}, **_ERRORS},
+)
+def get_report(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    return _artifact(job_id, "report.json", owner, store, storage, "application/json", f"{job_id}-report.json")
+
+
+@router.get(
+    "/{job_id}/charts/{name}.png",
+    summary="Get a chart",
+    description="A PNG chart of the job: rate_distortion, speed_accuracy, mirrors, compare_0, ... (those the "
+    "pipeline drew).",
+    response_class=FileResponse,
+    responses={**_binary("the chart", "image/png"), **_ERRORS},
+)
+def get_chart(
+    job_id: str,
+    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$")],
+    owner: OwnerDep,
+    store: StoreDep,
+    storage: StorageDep,
+) -> FileResponse:
+    return _artifact(job_id, f"charts/{name}.png", owner, store, storage, "image/png", f"{job_id}-{name}.png")

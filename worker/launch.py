@@ -1,0 +1,48 @@
+"""Start a Celery worker for one queue, with its maintenance thread (``symgs worker --mode gpu|cpu``)."""
+
+from __future__ import annotations
+
+import socket
+import uuid
+
+from celery import signals
+
+from .celery_app import app
+from .maintenance import Maintenance
+from .settings import get_settings
+from .storage import storage_from_settings
+from .store import JobStore
+
+
+def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> None:
+    """Consume queue ``mode`` (gpu or cpu) in this process until stopped. A GPU worker runs one job at a time."""
+    if mode not in ("gpu", "cpu"):
+        raise ValueError(f"mode must be 'gpu' or 'cpu', got {mode!r}")
+    if mode == "gpu" and concurrency != 1:
+        raise ValueError(f"a gpu worker runs one job at a time, got concurrency {concurrency}")
+    settings = get_settings()
+    name = f"{mode}-{uuid.uuid4().hex[:8]}@{socket.gethostname()}"
+    maintenance: list[Maintenance] = []
+
+    @signals.worker_ready.connect(weak=False)
+    def _start(**_: object) -> None:
+        thread = Maintenance(
+            store=JobStore.from_url(settings.redis_url), storage=storage_from_settings(settings), celery=app,
+            settings=settings, mode=mode, name=name,
+        )  # fmt: skip
+        thread.start()
+        maintenance.append(thread)
+
+    @signals.worker_shutdown.connect(weak=False)
+    def _stop(**_: object) -> None:
+        for thread in maintenance:
+            thread.stop()
+
+    app.worker_main(
+        [
+            "worker", "--queues", mode, "--concurrency", str(concurrency), "--pool", "prefork",
+            "--hostname", name, "--loglevel", loglevel,
+            # Liveness is the maintenance heartbeat; the cluster chatter would only slow start-up.
+            "--without-mingle", "--without-gossip", "--without-heartbeat",
+        ]
+    )  # fmt: skip

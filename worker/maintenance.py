@@ -1,0 +1,136 @@
+"""Work a worker does besides jobs: announce it is alive, recover jobs of lost workers, expire old jobs.
+
+Redis hands a dead worker's unacknowledged message to another worker only after the visibility timeout, which
+must exceed the longest job (hours). Jobs are recovered much sooner by their leases: a running job whose lease
+expired has lost its worker, and the first sweep that notices sends it again (each attempt once, whichever worker
+sweeps first). Every worker sweeps when it starts and then periodically.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+from celery import Celery
+from redis import RedisError
+
+from .celery_app import send_compress
+from .routing import choose_queue
+from .settings import Settings
+from .storage import Storage
+from .store import JobStore
+
+log = logging.getLogger(__name__)
+STAGING_MAX_AGE_S = 6 * 3600  # an upload still staging after this long belongs to an API process that died
+
+
+@dataclass
+class SweepReport:
+    requeued: list[str] = field(default_factory=list)
+    rerouted: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    cancelled: list[str] = field(default_factory=list)
+    expired: list[str] = field(default_factory=list)
+
+
+def recover_lost(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
+    """Re-queue running jobs whose lease expired; fail them after ``max_attempts`` runs or past the time limit."""
+    now = time.time()
+    for job_id in store.ids_in_state("running"):
+        if store.lease_held(job_id):
+            continue
+        record = store.get(job_id)
+        if record is None or record.state != "running":
+            continue
+        if not store.claim_requeue(job_id, record.attempts, settings.job_ttl):
+            continue  # another worker's sweep took this attempt
+        if record.cancel_requested:
+            store.transition(job_id, "cancelled", message="cancelled by the client")
+            report.cancelled.append(job_id)
+        elif record.attempts >= settings.max_attempts:
+            store.transition(
+                job_id, "failed", error_code="worker_lost",
+                error_message=f"the worker running this job was lost {record.attempts} times",
+            )  # fmt: skip
+            report.failed.append(job_id)
+        elif record.started_at is not None and now - record.started_at > settings.hard_time_limit:
+            store.transition(
+                job_id, "failed", error_code="time_limit",
+                error_message=f"the job ran past the time limit of {settings.hard_time_limit} s",
+            )  # fmt: skip
+            report.failed.append(job_id)
+        else:
+            queue = choose_queue(store, record.params.device, alive_within_s=settings.lease_seconds)
+            if store.transition(job_id, "queued", queue=queue, message="worker lost; queued again") is not None:
+                send_compress(celery, job_id, queue)
+                report.requeued.append(job_id)
+                log.warning("job %s lost its worker; queued again on %s", job_id, queue)
+
+
+def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
+    """Send ``auto`` jobs waiting on the gpu queue to the cpu queue when no GPU worker is alive any more.
+
+    The gpu message stays queued; whichever delivery runs first takes the job and the other finds it done."""
+    if store.live_workers("gpu", settings.lease_seconds) > 0:
+        return
+    for job_id in store.ids_in_state("queued"):
+        record = store.get(job_id)
+        if record is None or record.state != "queued" or record.queue != "gpu" or record.params.device != "auto":
+            continue
+        store.update(job_id, queue="cpu")
+        send_compress(celery, job_id, "cpu")
+        report.rerouted.append(job_id)
+
+
+def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepReport) -> None:
+    """Delete jobs (records and files) that finished more than ``job_ttl`` seconds ago, and stale uploads."""
+    for job_id in store.finished_before(time.time() - settings.job_ttl):
+        storage.delete(job_id)
+        store.delete(job_id)
+        report.expired.append(job_id)
+    storage.sweep_staging(STAGING_MAX_AGE_S)
+
+
+def sweep(store: JobStore, storage: Storage, celery: Celery, settings: Settings) -> SweepReport:
+    report = SweepReport()
+    recover_lost(store, celery, settings, report)
+    reroute_stranded(store, celery, settings, report)
+    expire(store, storage, settings, report)
+    return report
+
+
+class Maintenance(threading.Thread):
+    """A worker's background thread: a liveness heartbeat every third of a lease, a sweep every
+    ``maintenance_seconds`` (and at once on start)."""
+
+    def __init__(
+        self, *, store: JobStore, storage: Storage, celery: Celery, settings: Settings, mode: str, name: str
+    ) -> None:
+        super().__init__(name="symgs-maintenance", daemon=True)
+        self.store, self.storage, self.celery, self.settings = store, storage, celery, settings
+        self.mode, self.worker_name = mode, name
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        next_sweep = 0.0
+        beat = self.settings.lease_seconds / 3
+        while True:
+            try:
+                self.store.worker_beat(self.mode, self.worker_name)
+                if time.monotonic() >= next_sweep:
+                    next_sweep = time.monotonic() + self.settings.maintenance_seconds
+                    sweep(self.store, self.storage, self.celery, self.settings)
+            except Exception:  # noqa: BLE001 - a failed sweep (Redis away) must not end the thread
+                log.exception("maintenance sweep failed; retrying")
+            if self._halt.wait(min(beat, self.settings.maintenance_seconds)):
+                break
+        try:
+            self.store.worker_gone(self.mode, self.worker_name)
+        except RedisError:
+            log.warning("could not remove worker %s from the live set", self.worker_name)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(timeout=5)

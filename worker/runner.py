@@ -1,0 +1,210 @@
+"""One run of a compression job: the plain function behind the Celery task.
+
+A run takes the job's lease (so two deliveries of one job never run at once), keeps it alive from a heartbeat
+thread, calls the pipeline with the job's checkpoint folder (a rerun resumes after the last accepted level), and
+writes the results under fixed names (a rerun overwrites). Failures are not handled here: they propagate to the
+task's ``on_failure`` hook, the one place that marks a job failed.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from redis import RedisError
+
+from .settings import Settings
+from .storage import Storage
+from .store import JobRecord, JobStore
+
+Outcome = Literal["succeeded", "cancelled", "skipped", "lost"]
+_CANCEL_POLL_S = 0.5  # should_stop is called often; ask Redis at most this often
+_PROGRESS_EVERY_S = 0.25  # progress reports within one stage and level are thinned to this rate
+
+
+class _Heartbeat(threading.Thread):
+    """Renews the job's lease until stopped; ``lost`` is set when another worker took the job over."""
+
+    def __init__(self, store: JobStore, job_id: str, token: str, lease_s: float) -> None:
+        super().__init__(name=f"lease-{job_id[:8]}", daemon=True)
+        self.store, self.job_id, self.token, self.lease_s = store, job_id, token, lease_s
+        self.lost = threading.Event()
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        while not self._halt.wait(self.lease_s / 3):
+            try:
+                if not self.store.renew_lease(self.job_id, self.token, self.lease_s):
+                    self.lost.set()
+                    return
+            except RedisError:  # Redis unreachable for a moment: try again next beat; the lease outlives 2 misses
+                continue
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join()
+
+
+@dataclass
+class _Progress:
+    """The pipeline's progress callback: writes the job store and its event stream, thinned within a stage."""
+
+    store: JobStore
+    job_id: str
+    _last: tuple[str, int | None, float] = ("", None, 0.0)
+
+    def __call__(self, event) -> None:  # noqa: ANN001 - symgs_core.progress.ProgressEvent
+        now = time.monotonic()
+        stage, level, at = self._last
+        if (event.stage, event.level) == (stage, level) and now - at < _PROGRESS_EVERY_S and event.fraction < 1:
+            return
+        self._last = (event.stage, event.level, now)
+        fraction = min(max(float(event.fraction), 0.0), 1.0)
+        self.store.progress(self.job_id, stage=event.stage, level=event.level, fraction=fraction, message=event.message)
+
+
+class _StopCheck:
+    """The pipeline's ``should_stop``: a client cancelled, or the lease went to another worker."""
+
+    def __init__(self, store: JobStore, job_id: str, heartbeat: _Heartbeat) -> None:
+        self.store, self.job_id, self.heartbeat = store, job_id, heartbeat
+        self._next = 0.0
+        self._cancelled = False
+
+    def __call__(self) -> bool:
+        if self.heartbeat.lost.is_set():
+            return True
+        now = time.monotonic()
+        if not self._cancelled and now >= self._next:
+            self._next = now + _CANCEL_POLL_S
+            self._cancelled = self.store.cancel_requested(self.job_id)
+        return self._cancelled
+
+
+def headline(report: dict) -> tuple[list[dict], dict]:
+    """Accepted mirrors and the headline metrics of a pipeline report, as the Job model holds them."""
+    mirrors = [
+        {k: level[k] for k in ("level", "normal", "offset", "left", "right", "psnr_after")}
+        for level in report.get("levels", [])
+        if level.get("accepted")
+    ]
+    keys = ("input_bytes", "output_bytes", "ratio_to_ply", "ratio_to_baseline", "psnr", "ssim")
+    metrics = {k: report[k] for k in keys}
+    metrics["seconds"] = float(sum(report.get("seconds", {}).values()))
+    return mirrors, metrics
+
+
+def _write_results(storage: Storage, job_id: str, result) -> None:  # noqa: ANN001 - symgs_core CompressResult
+    from symgs_core.pipeline import decompress
+    from symgs_core.ply import save_scene
+
+    storage.write_artifact(job_id, "result.symgs", result.archive)
+    storage.write_artifact(job_id, "report.json", json.dumps(result.report, indent=1).encode())
+    for name, png in result.images.items():
+        storage.write_artifact(job_id, f"charts/{name}.png", png)
+    # The decoded scene is what a viewer gets; decoding the archive we store proves the archive is whole.
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "result.ply"
+        save_scene(decompress(result.archive), path)
+        storage.write_artifact(job_id, "result.ply", path.read_bytes())
+
+
+def run_job(
+    job_id: str, *, store: JobStore, storage: Storage, settings: Settings, token: str, device: str
+) -> Outcome:
+    """Run (or resume) a job. ``token`` names this delivery; ``device`` is ``cuda`` or ``cpu``.
+
+    Returns what happened; raises whatever the pipeline raised (input errors carry a ``code``)."""
+    record = store.get(job_id)
+    if record is None or record.finished:
+        return "skipped"  # deleted, or done by an earlier delivery of the same message
+    if not store.acquire_lease(job_id, token, settings.lease_seconds):
+        return "skipped"  # another worker runs it; if that worker dies, a reaper re-queues the job
+    heartbeat = _Heartbeat(store, job_id, token, settings.lease_seconds)
+    heartbeat.start()
+    failed = True
+    try:
+        outcome = _run_leased(record, store=store, storage=storage, heartbeat=heartbeat, device=device)
+        failed = False
+        return outcome
+    finally:
+        heartbeat.stop()
+        if not failed:  # after a failure the on_failure hook marks the job first, then releases the lease
+            store.release_lease(job_id, token)
+            _delete_if_requested(store, storage, job_id)
+
+
+def _run_leased(
+    record: JobRecord, *, store: JobStore, storage: Storage, heartbeat: _Heartbeat, device: str
+) -> Outcome:
+    from symgs_core.config import CompressConfig
+    from symgs_core.pipeline import compress
+    from symgs_core.progress import Cancelled
+
+    job_id = record.id
+    if store.cancel_requested(job_id):
+        store.transition(job_id, "cancelled", stage=record.stage)
+        return "cancelled"
+    started = record.started_at or time.time()
+    running = store.transition(
+        job_id, "running", started_at=started, attempts=record.attempts + 1, stage="load", message="starting"
+    )
+    if running is None:
+        return "skipped"  # cancelled between the checks
+
+    folder = storage.job_dir(job_id)
+    params = record.params.model_dump(exclude={"device"})
+    config = CompressConfig(**params, device=device)
+    images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
+    stop = _StopCheck(store, job_id, heartbeat)
+    try:
+        result = compress(
+            folder / "upload" / "scene.ply",
+            images=images,
+            config=config,
+            progress=_Progress(store, job_id),
+            checkpoint_dir=folder / "checkpoints",
+            should_stop=stop,
+        )
+    except Cancelled:
+        if heartbeat.lost.is_set():
+            return "lost"
+        store.transition(job_id, "cancelled", message="cancelled by the client")
+        return "cancelled"
+    if heartbeat.lost.is_set():
+        return "lost"  # the worker that took the job over writes the same files
+    _write_results(storage, job_id, result)
+    mirrors, metrics = headline(result.report)
+    artifacts = storage.artifact_names(job_id)
+    done = store.transition(
+        job_id, "succeeded", stage="done", progress=1.0, message="", mirrors=mirrors, metrics=metrics,
+        artifacts=artifacts,
+    )  # fmt: skip
+    if done is not None and done.finished_at is not None:
+        store.record_duration(done.finished_at - started)
+    return "succeeded"
+
+
+def _delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None:
+    record = store.get(job_id)
+    if record is not None and record.delete_requested and record.finished:
+        storage.delete(job_id)
+        store.delete(job_id)
+
+
+def mark_failed(
+    job_id: str, code: str, message: str, *, store: JobStore, storage: Storage, token: str, lease_s: float
+) -> JobRecord | None:
+    """The failure hook's work: record a machine-readable code and the message, then free the job. Nothing is
+    marked when another worker holds the job's lease (this delivery failed while that one runs it)."""
+    if not store.renew_lease(job_id, token, lease_s) and store.lease_held(job_id):
+        return None
+    record = store.transition(job_id, "failed", error_code=code, error_message=message[:2000])
+    store.release_lease(job_id, token)
+    _delete_if_requested(store, storage, job_id)
+    return record

@@ -1,0 +1,377 @@
+"""The job store: job records, their event streams, cancel flags, worker leases and liveness, in Redis.
+
+Keys (prefix ``symgs:``)::
+
+    job:<id>                 hash: the job record (see JobRecord)
+    job:<id>:events          stream: state and progress events, relayed by the API as SSE
+    job:<id>:cancel          flag: a client asked to cancel; the running task polls it
+    job:<id>:lease           token of the worker running the job, kept alive by its heartbeat
+    jobs                     zset id -> created_at (all jobs)
+    jobs:state:<state>       zset id -> created_at
+    jobs:finished            zset id -> finished_at (for expiry)
+    owner:<o>:jobs, owner:<o>:state:<state>   zset id -> created_at (listing per API key)
+    idem:<o>:<key hash>      id of the job created with that Idempotency-Key
+    workers:<mode>           zset worker name -> last heartbeat
+    metrics:durations        hash: histogram of job durations (bucket counters, sum, count)
+
+State changes are checked transactions, so concurrent writers (a worker, the API cancelling, a reaper) cannot
+move a job out of a final state or run it twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import redis
+
+from api_schemas import TERMINAL_STATES, JobEvent, JobParams
+
+P = "symgs:"
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+EVENTS_MAXLEN = 5000  # progress events kept per job; state events are few
+DURATION_BUCKETS = (1, 5, 15, 30, 60, 120, 300, 600, 1800, 3600, 7200, 21600)  # seconds
+_ALLOWED = {  # to-state -> from-states
+    "queued": {"running"},  # a reaper re-queues a job whose worker was lost
+    "running": {"queued"},
+    "succeeded": {"running"},
+    "failed": {"queued", "running"},
+    "cancelled": {"queued", "running"},
+}
+
+# Renew or release a lease only while it still holds our token.
+_RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
+_RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
+
+
+def job_key(job_id: str) -> str:
+    return f"{P}job:{job_id}"
+
+
+def events_key(job_id: str) -> str:
+    return f"{P}job:{job_id}:events"
+
+
+def owner_of(api_key: str | None) -> str:
+    """The owner id of jobs created with an API key: a digest, so the key itself is never stored."""
+    if not api_key:
+        return "anonymous"
+    return hashlib.sha256(api_key.encode()).hexdigest()[:24]
+
+
+@dataclass
+class JobRecord:
+    """A job as stored. ``scene``/``images``/``mirrors``/``metrics`` hold the dicts of the api_schemas models."""
+
+    id: str
+    owner: str
+    params: JobParams
+    queue: str
+    scene: dict[str, Any]
+    images: dict[str, Any] | None = None
+    images_root: str | None = None  # dataset folder inside upload/images
+    state: str = "queued"
+    stage: str | None = None
+    level: int | None = None
+    progress: float = 0.0
+    message: str = ""
+    mirrors: list[dict[str, Any]] = field(default_factory=list)
+    metrics: dict[str, Any] | None = None
+    artifacts: list[str] = field(default_factory=list)
+    error_code: str | None = None
+    error_message: str | None = None
+    attempts: int = 0
+    cancel_requested: bool = False
+    delete_requested: bool = False
+    created_at: float = 0.0
+    started_at: float | None = None
+    finished_at: float | None = None
+    updated_at: float = 0.0
+
+    _JSON = ("params", "scene", "images", "mirrors", "metrics", "artifacts")
+
+    def to_hash(self) -> dict[str, str]:
+        out: dict[str, str] = {}
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if name == "params":
+                out[name] = value.model_dump_json()
+            elif name in self._JSON:
+                out[name] = json.dumps(value)
+            elif isinstance(value, bool):
+                out[name] = "1" if value else "0"
+            else:
+                out[name] = "" if value is None else str(value)
+        return out
+
+    @classmethod
+    def from_hash(cls, h: dict[str, str]) -> JobRecord:
+        def opt(name: str, cast: Any) -> Any:
+            value = h.get(name, "")
+            return None if value == "" else cast(value)
+
+        return cls(
+            id=h["id"],
+            owner=h["owner"],
+            params=JobParams.model_validate_json(h["params"]),
+            queue=h["queue"],
+            scene=json.loads(h["scene"]),
+            images=json.loads(h.get("images") or "null"),
+            images_root=opt("images_root", str),
+            state=h["state"],
+            stage=opt("stage", str),
+            level=opt("level", int),
+            progress=float(h.get("progress") or 0),
+            message=h.get("message", ""),
+            mirrors=json.loads(h.get("mirrors") or "[]"),
+            metrics=json.loads(h.get("metrics") or "null"),
+            artifacts=json.loads(h.get("artifacts") or "[]"),
+            error_code=opt("error_code", str),
+            error_message=opt("error_message", str),
+            attempts=int(h.get("attempts") or 0),
+            cancel_requested=h.get("cancel_requested") == "1",
+            delete_requested=h.get("delete_requested") == "1",
+            created_at=float(h["created_at"]),
+            started_at=opt("started_at", float),
+            finished_at=opt("finished_at", float),
+            updated_at=float(h["updated_at"]),
+        )
+
+    @property
+    def finished(self) -> bool:
+        return self.state in TERMINAL_STATES
+
+
+def _hash_fields(fields: dict[str, Any]) -> dict[str, str]:
+    out = {}
+    for name, value in fields.items():
+        if name in JobRecord._JSON:
+            out[name] = json.dumps(value)
+        elif isinstance(value, bool):
+            out[name] = "1" if value else "0"
+        else:
+            out[name] = "" if value is None else str(value)
+    return out
+
+
+def _event(kind: str, state: str, h: dict[str, str], now: float) -> dict[str, str]:
+    event = JobEvent(
+        kind=kind,  # type: ignore[arg-type]
+        state=state,  # type: ignore[arg-type]
+        stage=h.get("stage") or None,
+        level=int(h["level"]) if h.get("level") else None,
+        progress=float(h.get("progress") or 0),
+        message=h.get("message", ""),
+        time=now,
+    )
+    return {"data": event.model_dump_json()}
+
+
+class JobStore:
+    """Synchronous access to the job store, for the workers and the API's thread pool."""
+
+    def __init__(self, client: redis.Redis) -> None:
+        self.r = client
+        self._renew = client.register_script(_RENEW)
+        self._release = client.register_script(_RELEASE)
+
+    @classmethod
+    def from_url(cls, url: str) -> JobStore:
+        return cls(redis.Redis.from_url(url, decode_responses=True, health_check_interval=30))
+
+    # -- records -----------------------------------------------------------------------------------------------
+
+    def create(self, record: JobRecord) -> None:
+        now = time.time()
+        record.created_at = record.updated_at = now
+        h = record.to_hash()
+        with self.r.pipeline(transaction=True) as p:
+            p.hset(job_key(record.id), mapping=h)
+            p.zadd(f"{P}jobs", {record.id: now})
+            p.zadd(f"{P}jobs:state:{record.state}", {record.id: now})
+            p.zadd(f"{P}owner:{record.owner}:jobs", {record.id: now})
+            p.zadd(f"{P}owner:{record.owner}:state:{record.state}", {record.id: now})
+            p.xadd(events_key(record.id), _event("state", record.state, h, now))
+            p.execute()
+
+    def get(self, job_id: str) -> JobRecord | None:
+        h = self.r.hgetall(job_key(job_id))
+        return JobRecord.from_hash(h) if h else None
+
+    def get_owned(self, job_id: str, owner: str) -> JobRecord | None:
+        """The job, or None when it does not exist or belongs to another owner (the API answers 404 to both)."""
+        record = self.get(job_id)
+        return record if record is not None and record.owner == owner else None
+
+    def list(self, owner: str, *, state: str | None, offset: int, limit: int) -> tuple[list[JobRecord], int]:
+        """A page of an owner's jobs, newest first, and the total count."""
+        key = f"{P}owner:{owner}:state:{state}" if state else f"{P}owner:{owner}:jobs"
+        with self.r.pipeline(transaction=False) as p:
+            p.zcard(key)
+            p.zrevrange(key, offset, offset + limit - 1)
+            total, ids = p.execute()
+        with self.r.pipeline(transaction=False) as p:
+            for job_id in ids:
+                p.hgetall(job_key(job_id))
+            hashes = p.execute()
+        return [JobRecord.from_hash(h) for h in hashes if h], int(total)
+
+    def transition(self, job_id: str, to: str, **fields: Any) -> JobRecord | None:
+        """Move a job to state ``to`` if its current state allows it, setting ``fields`` too; appends a state
+        event. Returns the updated record, or None when the job is gone or in a state that cannot move to ``to``."""
+        key = job_key(job_id)
+
+        def attempt(p: redis.client.Pipeline) -> dict[str, str] | None:
+            h = p.hgetall(key)
+            if not h or h["state"] not in _ALLOWED[to]:
+                return None
+            now = time.time()
+            update = _hash_fields({**fields, "state": to, "updated_at": now})
+            if to in TERMINAL_STATES:
+                update["finished_at"] = str(now)
+            merged = {**h, **update}
+            created = float(h["created_at"])
+            p.multi()
+            p.hset(key, mapping=update)
+            p.zrem(f"{P}jobs:state:{h['state']}", job_id)
+            p.zrem(f"{P}owner:{h['owner']}:state:{h['state']}", job_id)
+            p.zadd(f"{P}jobs:state:{to}", {job_id: created})
+            p.zadd(f"{P}owner:{h['owner']}:state:{to}", {job_id: created})
+            if to in TERMINAL_STATES:
+                p.zadd(f"{P}jobs:finished", {job_id: now})
+            p.xadd(events_key(job_id), _event("state", to, merged, now))
+            return merged
+
+        merged = self.r.transaction(attempt, key, value_from_callable=True)
+        return JobRecord.from_hash(merged) if merged else None
+
+    def update(self, job_id: str, **fields: Any) -> None:
+        """Set fields of a job record that are not its state (mirrors, metrics, attempts, ...)."""
+        self.r.hset(job_key(job_id), mapping=_hash_fields({**fields, "updated_at": time.time()}))
+
+    def progress(self, job_id: str, *, stage: str, level: int | None, fraction: float, message: str) -> None:
+        """Record a progress report of a running job and append it to the job's event stream."""
+        now = time.time()
+        h = _hash_fields({"stage": stage, "level": level, "progress": fraction, "message": message, "updated_at": now})
+        with self.r.pipeline(transaction=True) as p:
+            p.hset(job_key(job_id), mapping=h)
+            p.xadd(events_key(job_id), _event("progress", "running", h, now), maxlen=EVENTS_MAXLEN, approximate=True)
+            p.execute()
+
+    def delete(self, job_id: str) -> None:
+        """Forget a job: its record, events, flags and index entries (its files are the storage's)."""
+        h = self.r.hgetall(job_key(job_id))
+        with self.r.pipeline(transaction=True) as p:
+            p.delete(job_key(job_id), events_key(job_id), f"{P}job:{job_id}:cancel", f"{P}job:{job_id}:lease")
+            p.zrem(f"{P}jobs", job_id)
+            p.zrem(f"{P}jobs:finished", job_id)
+            for state in STATES:
+                p.zrem(f"{P}jobs:state:{state}", job_id)
+            if h:
+                p.zrem(f"{P}owner:{h['owner']}:jobs", job_id)
+                for state in STATES:
+                    p.zrem(f"{P}owner:{h['owner']}:state:{state}", job_id)
+            p.execute()
+
+    def ids_in_state(self, state: str) -> list[str]:
+        return list(self.r.zrange(f"{P}jobs:state:{state}", 0, -1))
+
+    def finished_before(self, cutoff: float) -> list[str]:
+        return list(self.r.zrangebyscore(f"{P}jobs:finished", "-inf", cutoff))
+
+    def count_by_state(self) -> dict[str, int]:
+        with self.r.pipeline(transaction=False) as p:
+            for state in STATES:
+                p.zcard(f"{P}jobs:state:{state}")
+            return dict(zip(STATES, map(int, p.execute()), strict=True))
+
+    # -- idempotency -------------------------------------------------------------------------------------------
+
+    def _idem_key(self, owner: str, key: str) -> str:
+        return f"{P}idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+
+    def idempotent_job(self, owner: str, key: str) -> str | None:
+        return self.r.get(self._idem_key(owner, key))
+
+    def claim_idempotency(self, owner: str, key: str, job_id: str, ttl_s: int) -> str | None:
+        """Bind ``key`` to ``job_id``; returns the job id already bound to it, or None when the claim won."""
+        name = self._idem_key(owner, key)
+        if self.r.set(name, job_id, nx=True, ex=ttl_s):
+            return None
+        return self.r.get(name)
+
+    # -- cancellation ------------------------------------------------------------------------------------------
+
+    def request_cancel(self, job_id: str, ttl_s: int) -> None:
+        with self.r.pipeline(transaction=True) as p:
+            p.set(f"{P}job:{job_id}:cancel", "1", ex=ttl_s)
+            p.hset(job_key(job_id), mapping={"cancel_requested": "1", "updated_at": str(time.time())})
+            p.execute()
+
+    def cancel_requested(self, job_id: str) -> bool:
+        return bool(self.r.exists(f"{P}job:{job_id}:cancel"))
+
+    # -- leases: which worker runs a job -----------------------------------------------------------------------
+
+    def acquire_lease(self, job_id: str, token: str, ttl_s: float) -> bool:
+        return bool(self.r.set(f"{P}job:{job_id}:lease", token, nx=True, px=int(ttl_s * 1000)))
+
+    def renew_lease(self, job_id: str, token: str, ttl_s: float) -> bool:
+        """Extend our lease; False when it expired or another worker holds it now."""
+        return bool(self._renew(keys=[f"{P}job:{job_id}:lease"], args=[token, int(ttl_s * 1000)]))
+
+    def release_lease(self, job_id: str, token: str) -> None:
+        self._release(keys=[f"{P}job:{job_id}:lease"], args=[token])
+
+    def lease_held(self, job_id: str) -> bool:
+        return bool(self.r.exists(f"{P}job:{job_id}:lease"))
+
+    def claim_requeue(self, job_id: str, attempt: int, ttl_s: int) -> bool:
+        """One reaper wins the re-queue of a given attempt of a job."""
+        return bool(self.r.set(f"{P}job:{job_id}:requeue:{attempt}", "1", nx=True, ex=ttl_s))
+
+    # -- workers -----------------------------------------------------------------------------------------------
+
+    def worker_beat(self, mode: str, name: str) -> None:
+        self.r.zadd(f"{P}workers:{mode}", {name: time.time()})
+
+    def worker_gone(self, mode: str, name: str) -> None:
+        self.r.zrem(f"{P}workers:{mode}", name)
+
+    def live_workers(self, mode: str, within_s: float) -> int:
+        key = f"{P}workers:{mode}"
+        cutoff = time.time() - within_s
+        with self.r.pipeline(transaction=False) as p:
+            p.zremrangebyscore(key, "-inf", cutoff - 3600)  # forget workers silent for an hour
+            p.zcount(key, cutoff, "+inf")
+            return int(p.execute()[1])
+
+    # -- metrics -----------------------------------------------------------------------------------------------
+
+    def record_duration(self, seconds: float) -> None:
+        key = f"{P}metrics:durations"
+        with self.r.pipeline(transaction=True) as p:
+            for bound in DURATION_BUCKETS:
+                if seconds <= bound:
+                    p.hincrby(key, f"le:{bound}", 1)
+            p.hincrbyfloat(key, "sum", seconds)
+            p.hincrby(key, "count", 1)
+            p.execute()
+
+    def durations(self) -> tuple[list[tuple[float, int]], float, int]:
+        """Cumulative bucket counts ``[(upper bound, count)]``, the sum and the count of job durations."""
+        h = self.r.hgetall(f"{P}metrics:durations")
+        buckets = [(float(b), int(h.get(f"le:{b}", 0))) for b in DURATION_BUCKETS]
+        return buckets, float(h.get("sum", 0)), int(h.get("count", 0))
+
+    def queue_depth(self, queues: Iterable[str]) -> dict[str, int]:
+        """Messages waiting in each Celery queue (the Redis transport keeps a queue as a list of its name)."""
+        with self.r.pipeline(transaction=False) as p:
+            names = list(queues)
+            for name in names:
+                p.llen(name)
+            return dict(zip(names, map(int, p.execute()), strict=True))

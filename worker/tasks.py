@@ -1,0 +1,67 @@
+"""Celery tasks. A task takes a job id, re-loads the job from the store and hands it to ``runner.run_job``."""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+
+from celery import Task
+from celery.exceptions import SoftTimeLimitExceeded
+
+from .celery_app import COMPRESS_TASK, app
+from .runner import mark_failed, run_job
+from .settings import get_settings
+from .storage import storage_from_settings
+from .store import JobStore
+
+log = logging.getLogger(__name__)
+
+
+def _token(task_id: str | None) -> str:
+    """Names one delivery in one process: a redelivered message (same task id) in a new process differs."""
+    return f"{socket.gethostname()}:{os.getpid()}:{task_id}"
+
+
+class CompressTask(Task):
+    """Holds one store and storage per worker process; ``on_failure`` is the one place a job is marked failed."""
+
+    _store: JobStore | None = None
+
+    @property
+    def store(self) -> JobStore:
+        if self._store is None:
+            self._store = JobStore.from_url(get_settings().redis_url)
+        return self._store
+
+    def on_failure(self, exc, task_id, args, kwargs, einfo) -> None:  # noqa: ANN001 - Celery's signature
+        job_id = args[0]
+        if isinstance(exc, SoftTimeLimitExceeded):
+            code, message = "time_limit", f"the job ran past the time limit of {get_settings().soft_time_limit} s"
+        else:
+            code = getattr(exc, "code", None)
+            code = code if isinstance(code, str) else "internal_error"
+            message = str(exc) or type(exc).__name__
+        if code == "internal_error":
+            log.error("job %s failed: %s", job_id, einfo)
+        settings = get_settings()
+        mark_failed(
+            job_id, code, message, store=self.store, storage=storage_from_settings(settings),
+            token=_token(task_id), lease_s=settings.lease_seconds,
+        )  # fmt: skip
+
+
+@app.task(name=COMPRESS_TASK, base=CompressTask, bind=True)
+def compress_job(self: CompressTask, job_id: str) -> str:
+    settings = get_settings()
+    queue = (self.request.delivery_info or {}).get("routing_key", "cpu")
+    outcome = run_job(
+        job_id,
+        store=self.store,
+        storage=storage_from_settings(settings),
+        settings=settings,
+        token=_token(self.request.id),
+        device="cuda" if queue == "gpu" else "cpu",
+    )
+    log.info("job %s: %s", job_id, outcome)
+    return outcome
