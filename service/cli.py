@@ -20,7 +20,9 @@ class CliError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="symgs", description="SymGS: symmetry-aware 3D Gaussian Splatting compression")
+    parser = argparse.ArgumentParser(
+        prog="symgs", description="SymGS: symmetry-aware 3D Gaussian Splatting compression"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         try:
@@ -40,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as exc:
         print(f"symgs {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into a command that stopped reading (e.g. `| head`)
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

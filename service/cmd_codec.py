@@ -45,15 +45,26 @@ def _compress(args: argparse.Namespace) -> int:
         raise CliError(f"images folder not found: {args.images}")
     try:
         config = CompressConfig(
-            psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
-            resolution=args.resolution, train_views=args.train_views, eval_views=args.eval_views,
-            device=args.device, use_mirrors=not args.no_mirrors,
+            psnr_budget=args.psnr_budget,
+            max_levels=args.max_levels,
+            iterations=args.iterations,
+            resolution=args.resolution,
+            train_views=args.train_views,
+            eval_views=args.eval_views,
+            device=args.device,
+            use_mirrors=not args.no_mirrors,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     console = Console(stderr=True)
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                  TimeElapsedColumn(), console=console, disable=args.quiet) as bar:
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(),
+        console=console,
+        disable=args.quiet,
+    ) as bar:
         task = bar.add_task("compress", total=1.0)
 
         def on_progress(event) -> None:  # noqa: ANN001 - ProgressEvent

@@ -41,7 +41,9 @@ class Camera:
     def K(self) -> Tensor:
         """Intrinsics [3, 3]."""
         return torch.tensor(
-            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=self.R.dtype, device=self.R.device
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+            dtype=self.R.dtype,
+            device=self.R.device,
         )
 
     @property
@@ -58,7 +60,9 @@ class Camera:
         return -self.R.T @ self.t
 
     def to(self, device: torch.device | str) -> Camera:
-        return Camera(self.R.to(device), self.t.to(device), self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.name)
+        return Camera(
+            self.R.to(device), self.t.to(device), self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.name
+        )
 
     def resized(self, width: int, height: int) -> Camera:
         """The same view at another resolution (intrinsics scaled)."""
@@ -132,11 +136,15 @@ def orbit_cameras(
         # Near the poles the world up is parallel to the view: use another up there.
         cam_up = up_t if abs(float(d @ up_t)) < 0.99 else torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
         eye = center.to(torch.float64) + distance * d
-        cams.append(Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}"))
+        cams.append(
+            Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}")
+        )
     return cams
 
 
-def scene_cameras(means: Tensor, count: int, width: int = 256, height: int = 256, fov_deg: float = 50.0) -> list[Camera]:
+def scene_cameras(
+    means: Tensor, count: int, width: int = 256, height: int = 256, fov_deg: float = 50.0
+) -> list[Camera]:
     """Cameras over the bounding sphere of a scene that came without images."""
     center, radius = scene_bounds(means.detach().cpu())
     return orbit_cameras(center, radius, count, width, height, fov_deg)

@@ -37,7 +37,9 @@ class LevelRecord:
         return asdict(self)
 
 
-def apply_mirror(state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor, right: torch.Tensor) -> LevelState:
+def apply_mirror(
+    state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor, right: torch.Tensor
+) -> LevelState:
     """The next level's state: ``right`` members dropped, ``left`` marked in a new bit column, the plane appended.
 
     ``left`` and ``right`` index the current stored set.
@@ -78,13 +80,23 @@ def try_level(
 
     def on_step(step: int, loss: float) -> None:
         if step % 10 == 0:
-            report("levels", (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
-                   f"level {level}: step {step}/{config.iterations} loss {loss:.4f}", level)
+            report(
+                "levels",
+                (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
+                f"level {level}: step {step}/{config.iterations} loss {loss:.4f}",
+                level,
+            )
 
     torch.manual_seed(config.seed + 1000 * (level + 1))
     tuned = optimize_level(
-        candidate, views.train, views.background, iterations=config.iterations, extent=extent,
-        seed=config.seed + level, should_stop=report.should_stop, on_step=on_step,
+        candidate,
+        views.train,
+        views.background,
+        iterations=config.iterations,
+        extent=extent,
+        seed=config.seed + level,
+        should_stop=report.should_stop,
+        on_step=on_step,
     )
     psnr_after, ssim_after = evaluate(tuned.expanded(), views.test, views.background)
     if psnr_after < psnr_before:  # the fine-tune must pay for itself too: exact twins need none

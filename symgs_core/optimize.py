@@ -56,7 +56,9 @@ class LevelState:
         """No mirror: the scene stored as it is."""
         dev, dtype = scene.device, scene.means.dtype
         return LevelState(
-            scene, torch.zeros(0, 3, device=dev, dtype=dtype), torch.zeros(0, device=dev, dtype=dtype),
+            scene,
+            torch.zeros(0, 3, device=dev, dtype=dtype),
+            torch.zeros(0, device=dev, dtype=dtype),
             torch.zeros(len(scene), 0, dtype=torch.bool, device=dev),
         )
 
@@ -64,7 +66,12 @@ class LevelState:
         return expand(self.stored, self.normals, self.offsets, self.bits)[0]
 
     def detach(self) -> LevelState:
-        return LevelState(self.stored.detach().clone(), self.normals.detach().clone(), self.offsets.detach().clone(), self.bits.clone())
+        return LevelState(
+            self.stored.detach().clone(),
+            self.normals.detach().clone(),
+            self.offsets.detach().clone(),
+            self.bits.clone(),
+        )
 
 
 def loss_fn(image: Tensor, target: Tensor) -> Tensor:
@@ -111,7 +118,9 @@ def optimize_level(
     frozen_n, frozen_g = state.normals[: levels - k].detach(), state.offsets[: levels - k].detach()
     train_n = state.normals[levels - k :].detach().clone().requires_grad_(True)
     train_g = state.offsets[levels - k :].detach().clone().requires_grad_(True)
-    groups = [{"params": [params[name]], "lr": getattr(lr, name) * (extent if name == "means" else 1.0)} for name in params]
+    groups = [
+        {"params": [params[name]], "lr": getattr(lr, name) * (extent if name == "means" else 1.0)} for name in params
+    ]
     if k:
         groups += [{"params": [train_n], "lr": lr.plane}, {"params": [train_g], "lr": lr.plane * extent}]
     optimizer = torch.optim.Adam(groups, eps=1e-15)

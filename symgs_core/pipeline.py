@@ -22,7 +22,13 @@ from .scene import GaussianScene
 from .views import ViewSet, dataset_views, self_supervised_views
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
-_STAGES = {"load": (0.0, 0.03), "views": (0.03, 0.12), "levels": (0.12, 0.9), "encode": (0.9, 0.95), "evaluate": (0.95, 1.0)}
+_STAGES = {
+    "load": (0.0, 0.03),
+    "views": (0.03, 0.12),
+    "levels": (0.12, 0.9),
+    "encode": (0.9, 0.95),
+    "evaluate": (0.95, 1.0),
+}
 
 
 @dataclass
@@ -86,7 +92,7 @@ def compress(
     scene: GaussianScene | str | Path,
     *,
     images: str | Path | None = None,
-    config: CompressConfig = CompressConfig(),
+    config: CompressConfig | None = None,
     progress: ProgressFn | None = None,
     checkpoint_dir: str | Path | None = None,
     should_stop: StopFn | None = None,
@@ -96,6 +102,7 @@ def compress(
     Mirror levels are accepted while they keep the held-out PSNR within ``config.psnr_budget``; with
     ``checkpoint_dir`` every level decision is saved there and a rerun with the same inputs resumes after it.
     """
+    config = config or CompressConfig()
     report = _Reporter(progress, should_stop)
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
@@ -110,7 +117,7 @@ def compress(
     report("views", 0.0, "preparing views")
     background = torch.zeros(3, device=device)
     if images is not None:
-        views: ViewSet = dataset_views(images, config.resolution, background, device)
+        views: ViewSet = dataset_views(images, config.resolution, background, device, max_test=config.eval_views)
         reference_psnr, _ = evaluate(source, views.test, background)
         floor = reference_psnr - config.psnr_budget
     else:

@@ -22,20 +22,6 @@ class ViewSet:
     background: Tensor  # [3]
 
 
-def _fit(camera: Camera, resolution: int) -> Camera:
-    scale = resolution / max(camera.width, camera.height)
-    if scale >= 1.0:
-        return camera
-    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
-
-
-def _resize_image(image: Tensor, width: int, height: int) -> Tensor:
-    if image.shape[1] == width and image.shape[0] == height:
-        return image
-    chw = image.permute(2, 0, 1)[None]
-    return torch.nn.functional.interpolate(chw, size=(height, width), mode="area")[0].permute(1, 2, 0).contiguous()
-
-
 @torch.no_grad()
 def render_targets(scene: GaussianScene, cameras: list[Camera], background: Tensor) -> list[tuple[Camera, Tensor]]:
     from .render import render
@@ -61,17 +47,21 @@ def self_supervised_views(
     )
 
 
-def dataset_views(folder: str | Path, resolution: int, background: Tensor, device: torch.device) -> ViewSet:
-    """Posed images of a NeRF-Synthetic or COLMAP folder, downscaled so the longest side is ``resolution``."""
-    from .datasets import load_dataset
+def dataset_views(
+    folder: str | Path, resolution: int, background: Tensor, device: torch.device, max_test: int | None = None
+) -> ViewSet:
+    """Posed images of a NeRF-Synthetic or COLMAP folder, decoded at a scale whose longest side is ``resolution``.
+
+    All training images are used; ``max_test`` evenly spaced held-out images at most.
+    """
+    from .datasets import dataset_frames, load_dataset
 
     bg = tuple(float(v) for v in background)
+    first = dataset_frames(folder, "train")[0].camera
+    scale = min(1.0, resolution / max(first.width, first.height))
 
-    def load(split: str) -> list[tuple[Camera, Tensor]]:
-        out = []
-        for view in load_dataset(folder, split=split, background=bg):
-            cam = _fit(view.camera, resolution)
-            out.append((cam.to(device), _resize_image(view.image, cam.width, cam.height).to(device)))
-        return out
+    def load(split: str, max_views: int | None) -> list[tuple[Camera, Tensor]]:
+        views = load_dataset(folder, split=split, background=bg, max_views=max_views, scale=scale)
+        return [(v.camera.to(device), v.image.to(device)) for v in views]
 
-    return ViewSet(train=load("train"), test=load("test"), source="test images", background=background)
+    return ViewSet(train=load("train", None), test=load("test", max_test), source="test images", background=background)
