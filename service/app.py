@@ -11,7 +11,9 @@ from contextlib import asynccontextmanager
 
 import redis.asyncio as aioredis
 from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
 
+from api_schemas import JobEvent
 from worker.celery_app import make_celery
 from worker.settings import Settings
 from worker.storage import storage_from_settings
@@ -64,4 +66,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_handlers(app)
     for module in (jobs, events, results, ops):
         app.include_router(module.router)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
+
+
+def _openapi(app: FastAPI) -> dict:
+    """FastAPI's document, plus the schema of the SSE messages' data (JobEvent), which no JSON body references."""
+    if app.openapi_schema is None:
+        doc = get_openapi(
+            title=app.title, version=app.version, description=app.description, routes=app.routes, tags=app.openapi_tags
+        )
+        schema = JobEvent.model_json_schema(ref_template="#/components/schemas/{model}")
+        doc["components"]["schemas"]["JobEvent"] = schema
+        stream = doc["paths"]["/v1/jobs/{job_id}/events"]["get"]["responses"]["200"]["content"]["text/event-stream"]
+        stream["x-event-data"] = {"$ref": "#/components/schemas/JobEvent"}
+        app.openapi_schema = doc
+    return app.openapi_schema

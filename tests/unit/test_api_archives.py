@@ -1,0 +1,156 @@
+"""Safe extraction of dataset archives: hostile entries are refused before anything escapes, caps hold."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tarfile
+import zipfile
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from service.archives import ArchiveLimits, extract, extract_dataset, safe_parts
+from service.errors import ApiError
+
+LIMITS = ArchiveLimits(max_entries=20, max_bytes=1 << 20, max_images=4, max_image_pixels=64 * 64)
+
+
+def _png(size: int = 16) -> bytes:
+    buffer = io.BytesIO()
+    Image.new("RGB", (size, size)).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _write_zip(path: Path, entries: dict[str, bytes], *, mode: int | None = None, special: str | None = None) -> Path:
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, data in entries.items():
+            zf.writestr(name, data)
+        if special is not None:
+            info = zipfile.ZipInfo(special)
+            info.external_attr = (mode or 0) << 16
+            zf.writestr(info, b"/etc/passwd")
+    return path
+
+
+def _error(call) -> ApiError:  # noqa: ANN001
+    with pytest.raises(ApiError) as caught:
+        call()
+    return caught.value
+
+
+NERF = {"scene/transforms_train.json": json.dumps({"camera_angle_x": 0.7, "frames": []}).encode(),
+        "scene/train/r_0.png": _png(), "scene/train/r_1.png": _png()}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "name, parts",
+    [("a/b.png", ["a", "b.png"]), ("./a//b", ["a", "b"]), ("dir/", ["dir"]), ("a/./b", ["a", "b"])],
+)
+def test_safe_names(name: str, parts: list[str]) -> None:
+    assert safe_parts(name) == parts
+
+
+@pytest.mark.parametrize("name", ["../x", "a/../../x", "/etc/passwd", "C:/Windows/x", "a\\..\\..\\x", "\\\\host\\x",
+                                  "a\x00b"])  # fmt: skip
+def test_unsafe_names(name: str) -> None:
+    assert _error(lambda: safe_parts(name)).code == "unsafe_entry"
+
+
+def test_dataset_in_a_folder_is_found(tmp_path: Path) -> None:
+    archive = _write_zip(tmp_path / "a.zip", NERF)
+    dataset = extract_dataset(archive, tmp_path / "out", LIMITS)
+    assert (dataset.layout, dataset.root, dataset.images) == ("nerf_synthetic", "scene", 2)
+    assert dataset.bytes == sum(len(v) for v in NERF.values())
+    assert (tmp_path / "out" / "scene" / "train" / "r_1.png").read_bytes() == NERF["scene/train/r_1.png"]
+
+
+def test_colmap_at_the_top(tmp_path: Path) -> None:
+    entries = {"sparse/0/cameras.txt": b"# none\n", "images/a.jpg": _png(), "images/b.jpg": _png()}
+    dataset = extract_dataset(_write_zip(tmp_path / "c.zip", entries), tmp_path / "out", LIMITS)
+    assert (dataset.layout, dataset.root, dataset.images) == ("colmap", ".", 2)
+
+
+@pytest.mark.parametrize(
+    "entries, special, mode, status, code",
+    [
+        ({**NERF, "../escape.txt": b"x"}, None, None, 422, "unsafe_entry"),
+        (NERF, "scene/link", 0o120777, 422, "unsafe_entry"),  # symbolic link
+        (NERF, "scene/fifo", 0o010644, 422, "unsafe_entry"),  # named pipe
+        ({**NERF, "scene/big.bin": bytes(2 << 20)}, None, None, 413, "archive_too_large"),  # compresses to ~2 KiB
+        ({**NERF, **{f"scene/{i}.txt": b"" for i in range(20)}}, None, None, 413, "too_many_entries"),
+        ({"readme.txt": b"hi"}, None, None, 422, "bad_dataset"),
+        ({**NERF, "scene/train/r_2.png": _png(65)}, None, None, 413, "image_too_large"),
+        ({**NERF, **{f"scene/x{i}.png": _png() for i in range(3)}}, None, None, 413, "too_many_images"),
+        ({**NERF, "scene/train/bad.png": b"\x89PNG\r\n\x1a\n garbage"}, None, None, 422, "bad_image"),
+        ({**NERF, "scene/train/r_0.png/inner": b"x"}, None, None, 422, "bad_archive"),  # file where a folder goes
+    ],
+)
+def test_refused_zips(
+    tmp_path: Path, entries: dict, special: str | None, mode: int | None, status: int, code: str
+) -> None:
+    archive = _write_zip(tmp_path / "a.zip", entries, mode=mode, special=special)
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out" / "x", LIMITS))
+    assert (error.status, error.code) == (status, code), error.message
+    assert not (tmp_path / "out" / "escape.txt").exists() and not (tmp_path / "escape.txt").exists()
+
+
+def test_zip_bomb_with_lying_sizes_stops_at_the_cap(tmp_path: Path) -> None:
+    """An entry whose headers claim 1 KiB but whose data inflates to 4 MiB is cut where the claim ends."""
+    archive = _write_zip(tmp_path / "bomb.zip", {"scene/zeros.bin": bytes(4 << 20)})
+    data = bytearray(archive.read_bytes())
+    real = (4 << 20).to_bytes(4, "little")
+    for at in [i for i in range(len(data) - 3) if data[i : i + 4] == real]:
+        data[at : at + 4] = (1024).to_bytes(4, "little")
+    archive.write_bytes(bytes(data))
+    error = _error(lambda: extract(archive, tmp_path / "out", LIMITS))
+    assert (error.status, error.code) == (422, "bad_archive")
+    assert sum(f.stat().st_size for f in (tmp_path / "out").rglob("*") if f.is_file()) <= 1024
+
+
+@pytest.mark.parametrize("kind", [tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.CHRTYPE, tarfile.FIFOTYPE])
+def test_tar_links_and_devices_are_refused(tmp_path: Path, kind: bytes) -> None:
+    path = tmp_path / "a.tar"
+    with tarfile.open(path, "w") as tf:
+        info = tarfile.TarInfo("scene/x")
+        info.type, info.linkname = kind, "/etc/passwd"
+        tf.addfile(info)
+    assert _error(lambda: extract(path, tmp_path / "out", LIMITS)).code == "unsafe_entry"
+
+
+def test_tar_bomb_and_traversal(tmp_path: Path) -> None:
+    bomb = tmp_path / "bomb.tar.xz"
+    with tarfile.open(bomb, "w:xz") as tf:
+        info = tarfile.TarInfo("scene/zeros")
+        info.size = 3 << 20
+        tf.addfile(info, io.BytesIO(bytes(info.size)))
+    assert bomb.stat().st_size < 10_000
+    error = _error(lambda: extract(bomb, tmp_path / "out", LIMITS))
+    assert (error.status, error.code) == (413, "archive_too_large")
+
+    sneaky = tmp_path / "sneaky.tar.gz"
+    with tarfile.open(sneaky, "w:gz") as tf:
+        info = tarfile.TarInfo("../../sneaky.txt")
+        info.size = 1
+        tf.addfile(info, io.BytesIO(b"x"))
+    assert _error(lambda: extract(sneaky, tmp_path / "out2", LIMITS)).code == "unsafe_entry"
+    assert not (tmp_path / "sneaky.txt").exists() and not Path(os.path.dirname(tmp_path), "sneaky.txt").exists()
+
+
+def test_tar_dataset_is_extracted(tmp_path: Path) -> None:
+    path = tmp_path / "d.tar.gz"
+    with tarfile.open(path, "w:gz") as tf:
+        for name, data in NERF.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    dataset = extract_dataset(path, tmp_path / "out", LIMITS)
+    assert (dataset.layout, dataset.root, dataset.images) == ("nerf_synthetic", "scene", 2)
+
+
+def test_not_an_archive(tmp_path: Path) -> None:
+    path = tmp_path / "x.bin"
+    path.write_bytes(b"hello world, not an archive")
+    assert _error(lambda: extract(path, tmp_path / "out", LIMITS)).code == "bad_archive"

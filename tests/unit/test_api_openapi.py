@@ -1,0 +1,65 @@
+"""The OpenAPI document is complete, and the API process never loads torch."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from service.app import create_app
+from worker.settings import Settings
+
+ROUTES = {
+    ("post", "/v1/jobs"), ("get", "/v1/jobs"), ("get", "/v1/jobs/{job_id}"), ("delete", "/v1/jobs/{job_id}"),
+    ("post", "/v1/jobs/{job_id}:cancel"), ("get", "/v1/jobs/{job_id}/events"), ("get", "/v1/jobs/{job_id}/result"),
+    ("get", "/v1/jobs/{job_id}/result.ply"), ("get", "/v1/jobs/{job_id}/result.spz"),
+    ("get", "/v1/jobs/{job_id}/report"), ("get", "/v1/jobs/{job_id}/charts/{name}.png"), ("get", "/healthz"),
+    ("get", "/readyz"), ("get", "/metrics"),
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def doc() -> dict:
+    # No connection is made until a request arrives.
+    return create_app(Settings(redis_url="redis://127.0.0.1:1/0", storage="/nonexistent-unused")).openapi()
+
+
+def test_every_route_is_documented(doc: dict) -> None:
+    operations = {(method, path) for path, item in doc["paths"].items() for method in item}
+    assert operations == ROUTES
+    for method, path in ROUTES:
+        op = doc["paths"][path][method]
+        assert op.get("summary") and op.get("description"), (method, path)
+        success = [code for code in op["responses"] if code.startswith("2")]
+        assert success, (method, path)
+        for code in success:
+            content = op["responses"][code].get("content")
+            assert content or code == "204", (method, path, code)
+        if path.startswith("/v1/"):
+            assert "401" in op["responses"] and "ErrorResponse" in str(op["responses"]["401"]), (method, path)
+
+
+def test_models_and_examples(doc: dict) -> None:
+    schemas = doc["components"]["schemas"]
+    for name in ("Job", "JobPage", "JobParams", "JobEvent", "Report", "ErrorResponse", "Readiness", "Health"):
+        assert schemas[name].get("examples"), name
+    create = doc["paths"]["/v1/jobs"]["post"]
+    body = create["requestBody"]["content"]["multipart/form-data"]["schema"]
+    assert body["required"] == ["scene"] and set(body["properties"]) == {"scene", "images", "params"}
+    assert create["responses"]["202"]["content"]["application/json"]["schema"]["$ref"].endswith("/Job")
+    assert {"413", "422"} <= set(create["responses"])
+    get = doc["paths"]["/v1/jobs/{job_id}"]["get"]["responses"]["200"]
+    assert get["content"]["application/json"]["schema"]["$ref"].endswith("/Job")
+    assert "text/event-stream" in doc["paths"]["/v1/jobs/{job_id}/events"]["get"]["responses"]["200"]["content"]
+    assert doc["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+
+
+def test_api_process_never_imports_torch() -> None:
+    code = (
+        "import sys, service.app\n"
+        "service.app.create_app()\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+        "assert not any(m.startswith('symgs_core') for m in sys.modules), 'symgs_core imported'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -1,0 +1,56 @@
+"""Job parameters: what clients may send, and that every accepted value makes a valid pipeline config."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from api_schemas import JobParams
+from service.errors import ApiError
+from service.submission import parse_params
+from symgs_core.config import CompressConfig
+from worker.settings import Settings
+
+
+def test_params_map_onto_the_pipeline_config() -> None:
+    fields = {f.name: f.default for f in dataclasses.fields(CompressConfig)}
+    params = JobParams()
+    for name, value in params.model_dump(exclude={"device"}).items():
+        assert name in fields, name
+        assert fields[name] == value, name  # same defaults as the library
+    extremes = JobParams(psnr_budget=20, max_levels=16, iterations=20_000, train_views=512, eval_views=256,
+                         resolution=2048, seed=2**31 - 1)  # fmt: skip
+    for device in ("cpu", "cuda"):
+        CompressConfig(**extremes.model_dump(exclude={"device"}), device=device)
+
+
+@pytest.mark.parametrize(
+    "text, where",
+    [
+        ("{", "params"), ("[]", "params"), ('{"iterations": -1}', "iterations"), ('{"resolution": 8}', "resolution"),
+        ('{"preset": "huge"}', "preset"), ('{"device": "tpu"}', "device"), ('{"detect": {}}', "detect"),
+        ('{"max_levels": 17}', "max_levels"), ('{"psnr_budget": "a lot"}', "psnr_budget"),
+    ],
+)
+def test_bad_params_are_named(text: str, where: str) -> None:
+    with pytest.raises(ApiError) as caught:
+        parse_params(text)
+    assert (caught.value.status, caught.value.code) == (422, "bad_params")
+    assert where in caught.value.message
+
+
+def test_missing_params_mean_defaults() -> None:
+    assert parse_params(None) == parse_params("{}") == JobParams()
+
+
+def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SYMGS_API_KEYS", " a , b,,")
+    monkeypatch.setenv("SYMGS_MAX_UPLOAD_BYTES", "1000")
+    settings = Settings()
+    assert settings.keys == ["a", "b"] and settings.max_upload_bytes == 1000
+    assert settings.visibility_timeout > settings.hard_time_limit > settings.soft_time_limit
+    with pytest.raises(ValueError, match="HARD_TIME_LIMIT"):
+        Settings(soft_time_limit=100, hard_time_limit=50)
+    with pytest.raises(ValueError, match="directory path"):
+        Settings(storage="s3://bucket/jobs")

@@ -1,0 +1,98 @@
+"""The API's PLY header check agrees with the full reader on what it accepts, and refuses what it must."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from service.errors import ApiError
+from service.ply_header import check_ply
+from symgs_core.ply import PlyError, read_scene, save_scene
+from symgs_core.scene import GaussianScene
+
+
+def _scene(n: int, k: int) -> GaussianScene:
+    g = torch.Generator().manual_seed(n + k)
+    return GaussianScene(
+        means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+        scales=torch.randn(n, 3, generator=g), opacities=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 3, generator=g), sh_rest=torch.randn(n, k, 3, generator=g),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("k, degree", [(0, 0), (3, 1), (8, 2), (15, 3)])
+def test_accepts_what_the_reader_reads(tmp_path: Path, k: int, degree: int) -> None:
+    path = tmp_path / "s.ply"
+    save_scene(_scene(37, k), path)
+    header = check_ply(path, max_gaussians=1000)
+    assert (header.format, header.gaussians, header.sh_degree) == ("binary_little_endian", 37, degree)
+    assert read_scene(path)[1].count == 37
+
+
+def _edit(path: Path, old: bytes, new: bytes) -> None:
+    data = path.read_bytes()
+    end = data.index(b"end_header")
+    assert old in data[:end]
+    path.write_bytes(data[:end].replace(old, new, 1) + data[end:])
+
+
+@pytest.mark.parametrize(
+    "old, new, status, code",
+    [
+        (b"element vertex 37", b"element vertex 38", 422, "truncated"),
+        (b"element vertex 37", b"element vertex 1001", 413, "too_many_gaussians"),
+        (b"element vertex 37", b"element vertex 0", 422, "empty_scene"),
+        (b"element vertex 37", b"element vertex -3", 422, "malformed"),
+        (b"property float f_rest_8\n", b"", 422, "bad_sh_count"),
+        (b"property float f_rest_3\n", b"property float f_rest_30\n", 422, "bad_sh_count"),
+        (b"property float rot_3\n", b"", 422, "missing_property"),
+        (b"property float opacity", b"property uchar opacity", 422, "unsupported_format"),
+        (b"property float x", b"property list uchar float x", 422, "unsupported_format"),
+        (b"binary_little_endian", b"binary_middle_endian", 422, "unsupported_format"),
+        (b"element vertex", b"element face 5\nproperty float q\nelement vertex", 422, "truncated"),
+        (b"property float y\n", b"property float y\nproperty float y\n", 422, "malformed"),
+        (b"format", b"formatting", 422, "malformed"),
+    ],
+)
+def test_refuses_bad_headers(tmp_path: Path, old: bytes, new: bytes, status: int, code: str) -> None:
+    path = tmp_path / "s.ply"
+    save_scene(_scene(37, 3), path)
+    _edit(path, old, new)
+    with pytest.raises(ApiError) as caught:
+        check_ply(path, max_gaussians=1000)
+    assert (caught.value.status, caught.value.code) == (status, code), caught.value.message
+    if code in ("truncated", "bad_sh_count", "missing_property"):  # the full reader agrees
+        with pytest.raises(PlyError) as full:
+            read_scene(path)
+        assert full.value.code == code
+
+
+def test_header_counts_are_checked_against_the_file_size(tmp_path: Path) -> None:
+    path = tmp_path / "s.ply"
+    save_scene(_scene(37, 3), path)
+    path.write_bytes(path.read_bytes()[:-1])  # one byte short of 37 rows
+    with pytest.raises(ApiError) as caught:
+        check_ply(path, max_gaussians=1000)
+    assert caught.value.code == "truncated"
+
+
+def test_ascii_and_not_ply(tmp_path: Path) -> None:
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+    rows = np.arange(2 * len(names), dtype=np.float32).reshape(2, -1)
+    header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(f"property float {n}\n" for n in names)
+    body = "\n".join(" ".join(str(v) for v in row) for row in rows) + "\n"
+    path = tmp_path / "a.ply"
+    path.write_text(header + "end_header\n" + body)
+    assert check_ply(path, max_gaussians=10).gaussians == 2
+    path.write_text(header.replace("vertex 2", "vertex 2000") + "end_header\n" + body)
+    with pytest.raises(ApiError, match="claims 2000"):
+        check_ply(path, max_gaussians=10_000)
+    for junk in (b"", b"PLY\n", b"ply\nformat ascii 1.0\n" + b"comment x\n" * 10_000):
+        path.write_bytes(junk)
+        with pytest.raises(ApiError) as caught:
+            check_ply(path, max_gaussians=10)
+        assert caught.value.code == "not_ply"

@@ -1,0 +1,159 @@
+"""The job store against a real redis-server: state machine, listing, idempotency, leases, and the sweep that
+recovers jobs of lost workers."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from api_schemas import JobParams
+from service.stack import LocalStack
+from worker.celery_app import make_celery
+from worker.maintenance import SweepReport, expire, recover_lost, reroute_stranded
+from worker.settings import Settings
+from worker.storage import DirectoryStorage
+from worker.store import JobRecord, JobStore, owner_of
+
+
+@pytest.fixture(scope="module")
+def redis_url() -> Iterator[str]:
+    if shutil.which("redis-server") is None:
+        pytest.skip("redis-server is not installed (apt-get install redis-server)")
+    stack = LocalStack()
+    try:
+        stack.start_redis()
+        yield stack.redis_url
+    finally:
+        stack.cleanup()
+
+
+@pytest.fixture
+def store(redis_url: str) -> Iterator[JobStore]:
+    s = JobStore.from_url(redis_url)
+    s.r.flushdb()
+    yield s
+    s.r.close()
+
+
+def _job(i: int, owner: str = "o1", device: str = "auto", queue: str = "cpu") -> JobRecord:
+    return JobRecord(
+        id=f"{i:032x}", owner=owner, params=JobParams(device=device), queue=queue,
+        scene={"filename": "s.ply", "bytes": 10, "gaussians": 1, "sh_degree": 0},
+    )  # fmt: skip
+
+
+def test_record_round_trip(store: JobStore) -> None:
+    record = _job(1)
+    record.images, record.images_root = {"layout": "colmap", "images": 3, "bytes": 9}, "."
+    store.create(record)
+    again = store.get(record.id)
+    assert again == record
+    assert store.get_owned(record.id, "o1") == record and store.get_owned(record.id, "o2") is None
+    assert store.get("f" * 32) is None
+
+
+def test_state_machine(store: JobStore) -> None:
+    store.create(_job(1))
+    assert store.transition(_job(1).id, "succeeded") is None  # queued cannot succeed
+    running = store.transition(_job(1).id, "running", attempts=1)
+    assert running is not None and running.state == "running" and running.attempts == 1
+    done = store.transition(_job(1).id, "succeeded", metrics={"psnr": 40.0})
+    assert done is not None and done.finished_at is not None and done.metrics == {"psnr": 40.0}
+    for target in ("running", "queued", "failed", "cancelled"):
+        assert store.transition(_job(1).id, target) is None  # final states are final
+    assert store.count_by_state() == {"queued": 0, "running": 0, "succeeded": 1, "failed": 0, "cancelled": 0}
+    kinds = [(f["data"]) for _, f in store.r.xrange(f"symgs:job:{_job(1).id}:events")]
+    assert ['"state":"queued"' in k for k in kinds] == [True, False, False]
+
+
+def test_listing_pages_and_filters(store: JobStore) -> None:
+    for i in range(5):
+        store.create(_job(i))
+        time.sleep(0.002)  # distinct creation times
+    store.create(_job(9, owner="o2"))
+    store.transition(_job(1).id, "running")
+    page, total = store.list("o1", state=None, offset=1, limit=2)
+    assert total == 5 and [r.id for r in page] == [_job(3).id, _job(2).id]
+    running, total = store.list("o1", state="running", offset=0, limit=10)
+    assert total == 1 and [r.id for r in running] == [_job(1).id]
+    assert store.list("o2", state=None, offset=0, limit=10)[1] == 1
+    store.delete(_job(1).id)
+    assert store.list("o1", state="running", offset=0, limit=10) == ([], 0)
+
+
+def test_idempotency_is_per_owner(store: JobStore) -> None:
+    assert store.claim_idempotency("o1", "k", "a" * 32, 60) is None
+    assert store.claim_idempotency("o1", "k", "b" * 32, 60) == "a" * 32
+    assert store.claim_idempotency("o2", "k", "c" * 32, 60) is None
+    assert store.idempotent_job("o1", "k") == "a" * 32
+    assert owner_of(None) == "anonymous" and owner_of("key") != owner_of("key2") and "key" not in owner_of("key")
+
+
+def test_leases(store: JobStore) -> None:
+    job = _job(1).id
+    assert store.acquire_lease(job, "w1", 5) and not store.acquire_lease(job, "w2", 5)
+    assert store.renew_lease(job, "w1", 5) and not store.renew_lease(job, "w2", 5)
+    store.release_lease(job, "w2")  # not the holder: no effect
+    assert store.lease_held(job)
+    store.release_lease(job, "w1")
+    assert not store.lease_held(job)
+    assert store.acquire_lease(job, "w2", 0.2)
+    time.sleep(0.3)
+    assert not store.lease_held(job) and not store.renew_lease(job, "w2", 5)
+
+
+def _settings(redis_url: str, tmp_path: Path, **overrides) -> Settings:  # noqa: ANN003
+    return Settings(redis_url=redis_url, storage=str(tmp_path), lease_seconds=1, max_attempts=2, **overrides)
+
+
+def test_lost_jobs_are_requeued_then_failed(store: JobStore, redis_url: str, tmp_path: Path) -> None:
+    settings = _settings(redis_url, tmp_path)
+    celery = make_celery(settings)
+    alive, lost, cancelled = _job(1), _job(2), _job(3)
+    for record in (alive, lost, cancelled):
+        store.create(record)
+        store.transition(record.id, "running", attempts=1, started_at=time.time())
+    store.acquire_lease(alive.id, "w", 30)
+    store.request_cancel(cancelled.id, 60)
+
+    report = SweepReport()
+    recover_lost(store, celery, settings, report)
+    assert report.requeued == [lost.id] and report.cancelled == [cancelled.id]
+    assert store.get(lost.id).state == "queued" and store.get(alive.id).state == "running"
+    assert store.r.llen("cpu") == 1  # the task message, on the cpu queue since no gpu worker is alive
+    again = SweepReport()
+    recover_lost(store, celery, settings, again)
+    assert again == SweepReport()  # nothing twice
+
+    store.transition(lost.id, "running", attempts=2)  # the second run is lost too: max_attempts reached
+    final = SweepReport()
+    recover_lost(store, celery, settings, final)
+    assert final.failed == [lost.id]
+    failed = store.get(lost.id)
+    assert (failed.state, failed.error_code) == ("failed", "worker_lost")
+
+
+def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, redis_url: str, tmp_path: Path) -> None:
+    settings = _settings(redis_url, tmp_path, job_ttl=1)
+    celery = make_celery(settings)
+    storage = DirectoryStorage(tmp_path)
+    store.create(_job(1, queue="gpu"))
+    store.create(_job(2, queue="gpu", device="cuda"))
+    report = SweepReport()
+    store.worker_beat("gpu", "g1")
+    reroute_stranded(store, celery, settings, report)
+    assert report.rerouted == []  # a GPU worker is alive
+    store.worker_gone("gpu", "g1")
+    reroute_stranded(store, celery, settings, report)
+    assert report.rerouted == [_job(1).id] and store.get(_job(1).id).queue == "cpu"
+
+    store.transition(_job(2).id, "cancelled")
+    storage.write_artifact(_job(2).id, "report.json", b"{}")
+    time.sleep(1.1)
+    expire(store, storage, settings, report)
+    assert report.expired == [_job(2).id]
+    assert store.get(_job(2).id) is None and not storage.job_dir(_job(2).id).exists()
