@@ -105,3 +105,15 @@ def read_sse(response: httpx.Response) -> list[dict]:
             name, _, value = line.partition(":")
             fields[name] = value[1:] if value.startswith(" ") else value
     return messages
+
+
+@pytest.fixture(scope="session")
+def done_job(stack: LocalStack, scene_path: Path) -> dict:
+    """One job with the TINY parameters run to the end, shared by the tests that read it."""
+    with client_for(stack, KEY_A) as api:
+        response = submit(api, scene_path)
+        assert response.status_code == 202, response.text
+        job = response.json()
+        assert response.headers["location"] == f"/v1/jobs/{job['id']}"
+        assert response.headers["retry-after"] == "2"
+        return wait_for(api, job["id"], finished)

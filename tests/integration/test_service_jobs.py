@@ -6,25 +6,12 @@ import json
 from pathlib import Path
 
 import httpx
-import pytest
 import torch
 
-from tests.integration.conftest import KEY_A, TINY, client_for, finished, read_sse, submit, wait_for
+from tests.integration.conftest import TINY, finished, read_sse, submit, wait_for
 
 REPORT_KEYS = {"input_bytes", "output_bytes", "baseline_bytes", "ratio_to_ply", "ratio_to_baseline", "gaussians",
                "levels", "psnr", "ssim", "psnr_reference", "seconds", "device", "config"}  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def done_job(stack, scene_path: Path) -> dict:  # noqa: ANN001
-    """One job run to the end, shared by the tests that read it."""
-    with client_for(stack, KEY_A) as api:
-        response = submit(api, scene_path)
-        assert response.status_code == 202, response.text
-        job = response.json()
-        assert response.headers["location"] == f"/v1/jobs/{job['id']}"
-        assert response.headers["retry-after"] == "2"
-        return wait_for(api, job["id"], finished)
 
 
 def test_full_job_results_decode(done_job: dict, api_a: httpx.Client, scene_path: Path, tmp_path: Path) -> None:
