@@ -56,9 +56,11 @@ def test_models_and_examples(doc: dict) -> None:
 
 
 def test_api_process_never_imports_torch() -> None:
+    """Neither the app nor the command line that serves it (the API image has no torch)."""
     code = (
-        "import sys, service.app\n"
+        "import sys, service.app, service.cli\n"
         "service.app.create_app()\n"
+        "service.cli.build_parser()\n"
         "assert 'torch' not in sys.modules, 'torch imported'\n"
         "assert not any(m.startswith('symgs_core') for m in sys.modules), 'symgs_core imported'\n"
     )
