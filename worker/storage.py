@@ -82,13 +82,11 @@ class Storage(ABC):
 
 class DirectoryStorage(Storage):
     def __init__(self, root: str | os.PathLike[str]) -> None:
-        self.root = Path(root).resolve()
-        (self.root / "jobs").mkdir(parents=True, exist_ok=True)
-        (self.root / "staging").mkdir(parents=True, exist_ok=True)
+        self.root = Path(root).resolve()  # folders are made on first write
 
     def new_staging(self) -> Path:
         path = self.root / "staging" / uuid.uuid4().hex
-        path.mkdir()
+        path.mkdir(parents=True)
         return path
 
     def adopt(self, staging: Path, job_id: str) -> None:
@@ -126,7 +124,8 @@ class DirectoryStorage(Storage):
     def sweep_staging(self, older_than_s: float) -> int:
         cutoff = time.time() - older_than_s
         removed = 0
-        for path in (self.root / "staging").iterdir():
+        staging = self.root / "staging"
+        for path in staging.iterdir() if staging.is_dir() else ():
             try:
                 if path.stat().st_mtime < cutoff:
                     shutil.rmtree(path, ignore_errors=True)
