@@ -82,7 +82,7 @@ async def submit(
         job_id = uuid.uuid4().hex
         if idempotency_key is not None:
             winner = await run_in_threadpool(store.claim_idempotency, owner, idempotency_key, job_id, settings.job_ttl)
-            known = store.get(winner) if winner is not None else None
+            known = await run_in_threadpool(store.get, winner) if winner is not None else None
             if known is not None:  # a concurrent request with the same key won
                 storage.discard(staging)
                 return Submitted(known, created=False)
@@ -100,7 +100,12 @@ async def submit(
 
 def _known_job(store: JobStore, owner: str, key: str) -> JobRecord | None:
     job_id = store.idempotent_job(owner, key)
-    return store.get(job_id) if job_id is not None else None
+    if job_id is None:
+        return None
+    record = store.get(job_id)
+    if record is None:  # the job was deleted: the key is free again
+        store.forget_idempotency(owner, key)
+    return record
 
 
 def _record_and_queue(record: JobRecord, store: JobStore, storage: Storage, celery: Celery) -> None:

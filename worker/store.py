@@ -297,6 +297,9 @@ class JobStore:
     def idempotent_job(self, owner: str, key: str) -> str | None:
         return self.r.get(self._idem_key(owner, key))
 
+    def forget_idempotency(self, owner: str, key: str) -> None:
+        self.r.delete(self._idem_key(owner, key))
+
     def claim_idempotency(self, owner: str, key: str, job_id: str, ttl_s: int) -> str | None:
         """Bind ``key`` to ``job_id``; returns the job id already bound to it, or None when the claim won."""
         name = self._idem_key(owner, key)
