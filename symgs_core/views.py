@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from .cameras import Camera, scene_cameras
+from .cameras import Camera, orbit_cameras, scene_bounds
 from .scene import GaussianScene
 
 
@@ -16,32 +17,61 @@ from .scene import GaussianScene
 class ViewSet:
     """Cameras with target images [H, W, 3]; ``source`` says what the targets are."""
 
-    train: list[tuple[Camera, Tensor]]
-    test: list[tuple[Camera, Tensor]]
+    train: Sequence[tuple[Camera, Tensor]]
+    test: Sequence[tuple[Camera, Tensor]]
     source: str  # "renders of the input" | "test images"
     background: Tensor  # [3]
 
 
-@torch.no_grad()
-def render_targets(scene: GaussianScene, cameras: list[Camera], background: Tensor) -> list[tuple[Camera, Tensor]]:
-    from .render import render
+class RenderedTargets(Sequence):
+    """(camera, target) pairs whose targets are renders of a scene, made on first access and kept.
 
-    return [(cam, render(scene, cam.to(scene.device), background).image.detach()) for cam in cameras]
+    Training draws many self-supervised views; rendering each only when the optimiser first asks for it keeps the
+    set-up cost proportional to the views actually used.
+    """
+
+    def __init__(self, scene: GaussianScene, cameras: list[Camera], background: Tensor) -> None:
+        self.scene, self.cameras, self.background = scene.detach(), cameras, background
+        self._targets: dict[int, Tensor] = {}
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @torch.no_grad()
+    def __getitem__(self, index: int) -> tuple[Camera, Tensor]:  # type: ignore[override]
+        from .render import render
+
+        if index not in self._targets:
+            cam = self.cameras[index].to(self.scene.device)
+            self._targets[index] = render(self.scene, cam, self.background).image.detach()
+        return self.cameras[index].to(self.scene.device), self._targets[index]
+
+
+def _rotated(cams: list[Camera], center: Tensor, seed: int) -> list[Camera]:
+    """The same rig turned by a random rotation about ``center``: a set of views disjoint from the original."""
+    gen = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    q = q * torch.sign(torch.linalg.det(q))
+    c = center.to(torch.float64)
+    out = []
+    for cam in cams:
+        R = cam.R.to(torch.float64) @ q.T
+        eye = q @ (cam.center.to(torch.float64) - c) + c
+        out.append(Camera(R.float(), (-R @ eye).float(), cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.name))
+    return out
 
 
 def self_supervised_views(
-    scene: GaussianScene, train_count: int, test_count: int, resolution: int, background: Tensor
+    scene: GaussianScene, train_count: int, test_count: int, resolution: int, background: Tensor, seed: int = 0
 ) -> ViewSet:
-    """Cameras over the scene's bounding sphere; every ``k``-th one is held out and never trained on."""
-    total = train_count + test_count
-    cams = scene_cameras(scene.means, total, resolution, resolution)
-    step = total / test_count
-    test_idx = {int(i * step + step / 2) for i in range(test_count)}
-    test_cams = [c for i, c in enumerate(cams) if i in test_idx]
-    train_cams = [c for i, c in enumerate(cams) if i not in test_idx]
+    """Held-out cameras spread evenly over the scene's bounding sphere, and training cameras from a turned copy of
+    another such spread, so no training view coincides with a held-out one."""
+    center, radius = scene_bounds(scene.means.detach().cpu())
+    test_cams = orbit_cameras(center, radius, test_count, resolution, resolution)
+    train_cams = _rotated(orbit_cameras(center, radius, train_count, resolution, resolution), center, seed + 1)
     return ViewSet(
-        train=render_targets(scene, train_cams, background),
-        test=render_targets(scene, test_cams, background),
+        train=RenderedTargets(scene, train_cams, background),
+        test=RenderedTargets(scene, test_cams, background),
         source="renders of the input",
         background=background,
     )
