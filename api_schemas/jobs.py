@@ -73,7 +73,7 @@ class Job(BaseModel):
                     "level": 0,
                     "progress": 0.42,
                     "message": "level 0: step 80/200",
-                    "params": {"preset": "balanced", "psnr_budget": 0.5, "max_levels": 4, "device": "auto"},
+                    "params": {"preset": "balanced", "psnr_budget": 0.3, "max_levels": 4, "device": "auto"},
                     "queue": "cpu",
                     "scene": {"filename": "chair.ply", "bytes": 1240000, "gaussians": 5000, "sh_degree": 3},
                     "images": None,

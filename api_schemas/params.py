@@ -11,7 +11,8 @@ DevicePreference = Literal["auto", "cpu", "cuda"]
 
 
 class JobParams(BaseModel):
-    """Compression parameters; every field is optional. Bounds keep one job within a worker's means.
+    """Compression parameters. Every field is optional: a field left out (or null) takes the pipeline's default,
+    which may depend on the preset. Bounds keep one job within a worker's means.
 
     ``device``: ``cuda`` waits for a GPU worker, ``cpu`` runs on a CPU worker, ``auto`` takes a GPU worker when one
     is alive and a CPU worker otherwise.
@@ -21,19 +22,23 @@ class JobParams(BaseModel):
         extra="forbid",
         json_schema_extra={
             "examples": [
-                {"preset": "balanced", "psnr_budget": 0.5, "max_levels": 4, "device": "auto"},
+                {"preset": "balanced", "psnr_budget": 0.3, "max_levels": 4, "device": "auto"},
                 {"preset": "small", "iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64},
             ]
         },
     )
 
-    preset: Preset = "balanced"
-    psnr_budget: float = Field(0.5, ge=0, le=20, description="dB of held-out PSNR the mirrors may cost in total")
-    max_levels: int = Field(4, ge=0, le=16, description="cap on mirror levels")
-    iterations: int = Field(200, ge=0, le=20_000, description="optimisation steps per level")
-    train_views: int = Field(24, ge=1, le=512)
-    eval_views: int = Field(8, ge=1, le=256)
-    resolution: int = Field(192, ge=16, le=2048, description="longest side of rendered views, pixels")
-    use_mirrors: bool = Field(True, description="false: the plain codec only (the baseline)")
-    seed: int = Field(0, ge=0, le=2**31 - 1)
+    preset: Preset | None = Field(None, description="attribute codec and reductions: small, balanced, high, lossless")
+    psnr_budget: float | None = Field(None, ge=0, le=60, description="dB of held-out PSNR the job may cost in total")
+    max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
+    iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")
+    train_views: int | None = Field(None, ge=1, le=512)
+    eval_views: int | None = Field(None, ge=1, le=256)
+    resolution: int | None = Field(None, ge=16, le=2048, description="longest side of rendered views, pixels")
+    use_mirrors: bool | None = Field(None, description="false: the plain codec only (the baseline)")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1)
     device: DevicePreference = "auto"
+
+    def pipeline_overrides(self) -> dict:
+        """The fields the client set, as keyword arguments of the pipeline's config (device excluded)."""
+        return self.model_dump(exclude={"device"}, exclude_none=True)

@@ -158,8 +158,7 @@ def _run_leased(
         return "skipped"  # cancelled between the checks
 
     folder = storage.job_dir(job_id)
-    params = record.params.model_dump(exclude={"device"})
-    config = CompressConfig(**params, device=device)
+    config = CompressConfig(**record.params.pipeline_overrides(), device=device)
     images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
     stop = _StopCheck(store, job_id, heartbeat)
     try:

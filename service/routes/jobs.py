@@ -37,7 +37,7 @@ _MULTIPART = {
                         "params": {
                             "type": "string",
                             "description": "JSON object of JobParams",
-                            "example": '{"preset": "balanced", "psnr_budget": 0.5, "device": "auto"}',
+                            "example": '{"preset": "balanced", "psnr_budget": 0.3, "device": "auto"}',
                         },
                     },
                 },

@@ -14,15 +14,16 @@ from worker.settings import Settings
 
 
 def test_params_map_onto_the_pipeline_config() -> None:
-    fields = {f.name: f.default for f in dataclasses.fields(CompressConfig)}
-    params = JobParams()
-    for name, value in params.model_dump(exclude={"device"}).items():
-        assert name in fields, name
-        assert fields[name] == value, name  # same defaults as the library
-    extremes = JobParams(psnr_budget=20, max_levels=16, iterations=20_000, train_views=512, eval_views=256,
-                         resolution=2048, seed=2**31 - 1)  # fmt: skip
+    fields = {f.name for f in dataclasses.fields(CompressConfig)}
+    assert set(JobParams.model_fields) - {"device"} <= fields
+    assert JobParams().pipeline_overrides() == {}  # the pipeline's own defaults
+    extremes = JobParams(preset="lossless", psnr_budget=60, max_levels=16, iterations=20_000, train_views=512,
+                         eval_views=256, resolution=2048, use_mirrors=False, seed=2**31 - 1, device="cuda")  # fmt: skip
+    assert set(extremes.pipeline_overrides()) == set(JobParams.model_fields) - {"device"}
     for device in ("cpu", "cuda"):
-        CompressConfig(**extremes.model_dump(exclude={"device"}), device=device)
+        CompressConfig(**extremes.pipeline_overrides(), device=device)
+        CompressConfig(**JobParams(psnr_budget=0, resolution=16, train_views=1, eval_views=1).pipeline_overrides(),
+                       device=device)  # fmt: skip
 
 
 @pytest.mark.parametrize(
