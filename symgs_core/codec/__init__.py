@@ -23,10 +23,12 @@ from .registry import (
     section_codec,
 )
 from .section import EncodedSection, SectionCodec
+from .steps import QuantSteps, register_quantized  # registers the quantising section codecs for readers
 
 __all__ = [
     "FORMAT_VERSION",
     "MAGIC",
+    "QuantSteps",
     "SECTION_NAMES",
     "ArchiveContents",
     "ArchiveError",
@@ -43,6 +45,7 @@ __all__ = [
     "expanded_count",
     "morton_codes",
     "read_header",
+    "register_quantized",
     "register_archive_codec",
     "register_section_codec",
     "section_codec",

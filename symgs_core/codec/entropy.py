@@ -1,0 +1,198 @@
+"""Entropy coding of quantised attribute symbols: integer tables [N, C] to bytes and back.
+
+The encoder tries, and keeps the smallest of:
+  * per column, raw values or first differences along the (Morton-ordered) rows, each coded either with a static
+    adaptive-free ANS model (``constriction``; the symbol histogram is stored) or with zstandard at the narrowest
+    byte width;
+  * the whole table row-interleaved in one zstd frame (zstd's matches find repeated tuples, such as RGB triplets,
+    that an order-0 model cannot see).
+Measured on the real scenes (quantised to 16 bits per axis, 8 bits per colour channel): positions cost 157 kB as
+ANS-coded differences against 213 kB as zstd-coded differences and 249 kB as zstd-coded values (fox, 50k); DC colour
+cost 107 kB as interleaved zstd against 130 kB as per-channel ANS; opacity and scales code within 1% of their
+order-0 entropy either way.
+
+Stream layout (varints are the LEB128 of ``masks``; ``zz`` is the zigzag map of a signed integer):
+    u8 kind            0: columns, 1: rows
+    columns:  per column: u8 coder (0 zstd, 1 ans), u8 transform (0 raw, 1 delta), varint zz(offset), then
+              zstd: u8 width, varint L, L bytes (one frame of N unsigned little-endian values of that width)
+              ans:  varint K, varint L, L bytes (one zstd frame of K varint counts), varint W, W uint32 words
+    rows:     C varints zz(offset), u8 width, varint L, L bytes (one frame of N*C values, row-major)
+Symbols are ``value - offset`` (after the transform), so they are non-negative; a decoder checks every count and
+length against the table's known shape before it allocates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import ArchiveError
+from .masks import read_varints, write_varints
+from .section import zstd_compress, zstd_decompress_exact
+
+MAX_ALPHABET = 1 << 22  # ANS histograms beyond this go to zstd: the histogram would cost more than it saves
+COLUMNS, ROWS = 0, 1
+ZSTD, ANS = 0, 1
+RAW, DELTA = 0, 1
+_WIDTHS = {1: np.uint8, 2: np.uint16, 4: np.uint32}
+
+
+def _zigzag(v: int) -> int:
+    return 2 * v if v >= 0 else -2 * v - 1
+
+
+def _unzigzag(z: int) -> int:
+    return z // 2 if z % 2 == 0 else -(z + 1) // 2
+
+
+def _width(max_symbol: int) -> int:
+    for width in (1, 2, 4):
+        if max_symbol < 1 << (8 * width):
+            return width
+    raise ValueError(f"symbols up to {max_symbol} do not fit 32 bits")
+
+
+def _ans_words(symbols: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    import constriction
+
+    model = constriction.stream.model.Categorical(counts / counts.sum(), perfect=False)
+    coder = constriction.stream.stack.AnsCoder()
+    coder.encode_reverse(symbols.astype(np.int32), model)
+    return coder.get_compressed()
+
+
+def _column_candidates(column: np.ndarray, level: int) -> list[bytes]:
+    out = []
+    for transform in (RAW, DELTA):
+        values = column if transform == RAW else np.diff(column, prepend=np.int64(0))
+        offset = int(values.min()) if len(values) else 0
+        symbols = values - offset
+        top = int(symbols.max()) if len(symbols) else 0
+        head = bytes([transform]) + write_varints(np.array([_zigzag(offset)]))
+        width = _width(top)
+        frame = zstd_compress(symbols.astype(_WIDTHS[width]).tobytes(), level)
+        out.append(bytes([ZSTD]) + head + bytes([width]) + write_varints(np.array([len(frame)])) + frame)
+        if 0 < top < MAX_ALPHABET:  # constriction needs two symbols or more
+            counts = np.bincount(symbols, minlength=top + 1)
+            hist = zstd_compress(write_varints(counts), level)
+            words = _ans_words(symbols, counts.astype(np.float64))
+            sizes = write_varints(np.array([top + 1, len(hist)]))
+            out.append(bytes([ANS]) + head + sizes + hist + write_varints(np.array([len(words)])) + words.tobytes())
+    return out
+
+
+def encode_table(table: np.ndarray, level: int = 9) -> bytes:
+    """The smallest stream for an integer table [N, C] (values within +-2^31 after differencing)."""
+    if table.ndim != 2 or table.dtype.kind not in "iu":
+        raise ValueError(f"encode_table takes an integer table [N, C], got {table.dtype} of shape {table.shape}")
+    table = table.astype(np.int64)
+    if table.size and (int(np.abs(table).max()) >= 1 << 30):
+        raise ValueError(f"symbols must stay within +-2^30, got magnitude {int(np.abs(table).max())}")
+    columns = bytes([COLUMNS]) + b"".join(
+        min(_column_candidates(table[:, c], level), key=len) for c in range(table.shape[1])
+    )
+    offsets = table.min(axis=0) if len(table) else np.zeros(table.shape[1], dtype=np.int64)
+    symbols = table - offsets
+    width = _width(int(symbols.max()) if symbols.size else 0)
+    frame = zstd_compress(np.ascontiguousarray(symbols.astype(_WIDTHS[width])).tobytes(), level)
+    rows = (
+        bytes([ROWS])
+        + write_varints(np.array([_zigzag(int(o)) for o in offsets], dtype=np.int64))
+        + bytes([width])
+        + write_varints(np.array([len(frame)]))
+        + frame
+    )
+    return min(columns, rows, key=len)
+
+
+class _Reader:
+    """Bounded reads from a stream; every shortfall is a corrupt section."""
+
+    def __init__(self, data: bytes) -> None:
+        self.buf = np.frombuffer(data, dtype=np.uint8)
+        self.pos = 0
+
+    def byte(self) -> int:
+        if self.pos >= len(self.buf):
+            raise ArchiveError("corrupt_section", "symbol stream ends early")
+        self.pos += 1
+        return int(self.buf[self.pos - 1])
+
+    def varints(self, count: int) -> list[int]:
+        values, self.pos = read_varints(self.buf, self.pos, count)
+        return [int(v) for v in values]
+
+    def take(self, length: int) -> bytes:
+        if self.pos + length > len(self.buf):
+            raise ArchiveError("corrupt_section", f"symbol stream needs {length} bytes at {self.pos}, has fewer")
+        self.pos += length
+        return self.buf[self.pos - length : self.pos].tobytes()
+
+    def done(self) -> None:
+        if self.pos != len(self.buf):
+            raise ArchiveError("corrupt_section", f"symbol stream has {len(self.buf) - self.pos} trailing bytes")
+
+
+def _read_fixed(reader: _Reader, count: int, what: str) -> np.ndarray:
+    width = reader.byte()
+    if width not in _WIDTHS:
+        raise ArchiveError("corrupt_section", f"{what}: symbol width {width}, expected 1, 2 or 4")
+    (length,) = reader.varints(1)
+    raw = zstd_decompress_exact(reader.take(length), count * width, what)
+    return np.frombuffer(raw, dtype=_WIDTHS[width]).astype(np.int64)
+
+
+def _read_ans(reader: _Reader, n: int, what: str) -> np.ndarray:
+    import constriction
+
+    alphabet, length = reader.varints(2)
+    if not 1 < alphabet <= MAX_ALPHABET:
+        raise ArchiveError("corrupt_section", f"{what}: alphabet of {alphabet} symbols")
+    # Each count is a varint of at most 5 bytes: bound the histogram before inflating it.
+    raw = zstandard_bounded(reader.take(length), 5 * alphabet, what)
+    counts, end = read_varints(np.frombuffer(raw, dtype=np.uint8), 0, alphabet)
+    if end != len(raw) or int(counts.sum()) != n:
+        raise ArchiveError("corrupt_section", f"{what}: histogram counts {int(counts.sum())} symbols, expected {n}")
+    (words,) = reader.varints(1)
+    data = np.frombuffer(reader.take(4 * words), dtype="<u4").astype(np.uint32)
+    model = constriction.stream.model.Categorical(counts.astype(np.float64) / n, perfect=False)
+    coder = constriction.stream.stack.AnsCoder(data)
+    symbols = np.asarray(coder.decode(model, n), dtype=np.int64)
+    if not coder.is_empty():
+        raise ArchiveError("corrupt_section", f"{what}: ANS words left after {n} symbols")
+    return symbols
+
+
+def zstandard_bounded(payload: bytes, max_length: int, what: str) -> bytes:
+    """A zstd frame whose declared size is at most ``max_length``."""
+    import zstandard
+
+    try:
+        declared = zstandard.frame_content_size(payload)
+    except zstandard.ZstdError as exc:
+        raise ArchiveError("corrupt_section", f"{what}: not a zstd frame ({exc})") from exc
+    if not 0 <= declared <= max_length:
+        raise ArchiveError("corrupt_section", f"{what}: zstd frame declares {declared} bytes, at most {max_length}")
+    return zstd_decompress_exact(payload, declared, what)
+
+
+def decode_table(data: bytes, n: int, c: int, what: str) -> np.ndarray:
+    """Inverse of ``encode_table``: the int64 table [n, c]; ArchiveError("corrupt_section") if malformed."""
+    reader = _Reader(data)
+    kind = reader.byte()
+    if kind == ROWS:
+        offsets = np.array([_unzigzag(z) for z in reader.varints(c)], dtype=np.int64)
+        table = _read_fixed(reader, n * c, what).reshape(n, c) + offsets
+    elif kind == COLUMNS:
+        table = np.empty((n, c), dtype=np.int64)
+        for col in range(c):
+            coder, transform = reader.byte(), reader.byte()
+            if coder not in (ZSTD, ANS) or transform not in (RAW, DELTA):
+                raise ArchiveError("corrupt_section", f"{what}: column {col} has coder {coder} transform {transform}")
+            (offset,) = reader.varints(1)
+            symbols = _read_fixed(reader, n, what) if coder == ZSTD else _read_ans(reader, n, what)
+            values = symbols + _unzigzag(offset)
+            table[:, col] = np.cumsum(values) if transform == DELTA else values
+    else:
+        raise ArchiveError("corrupt_section", f"{what}: unknown table kind {kind}")
+    reader.done()
+    return table

@@ -1,0 +1,297 @@
+"""Quantising section codecs: each attribute on a uniform grid, the integer symbols entropy coded (``entropy``).
+
+A codec carries its step; the step, and whatever else decoding needs, is written into the section's ``params``, so
+one reader decodes every step a writer chose. The stored set arrives in ``coding_order`` (Morton order inside each
+level group), which is what makes position differences small.
+
+    positions   q = round((x - origin) / step), one step for all three axes (a cube grid in the bounding box)
+    rotations   smallest three: normalise, flip the sign so the largest component is positive, store its index and
+                the other three on a grid of ``step`` in [-1/sqrt2, 1/sqrt2]; decoding restores a unit quaternion
+    log-scales  q = round((s - origin) / step)
+    opacity     quantised as alpha = sigmoid(logit) (what the renderer blends); alpha 0 decodes to the lowest logit
+                the PLY reader keeps, which the renderer skips (alpha < 1/255)
+    SH DC       q = round(dc / step) per channel
+    SH rest     one step per band; a Gaussian's degree is the highest band with a non-zero symbol, stored as its own
+                column, and only the bands up to it are stored: bands dropped by ``prune.reduce_sh`` cost nothing
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
+from .entropy import decode_table, encode_table
+from .errors import ArchiveError
+from .section import EncodedSection, SectionKind
+
+SQRT1_2 = math.sqrt(0.5)
+MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
+
+
+def _number(params: dict[str, Any], key: str, codec: str) -> float:
+    value = params.get(key)
+    if type(value) not in (int, float) or not math.isfinite(value):
+        raise ArchiveError("bad_header", f"{codec}: parameter {key}={value!r:.60} must be a finite number")
+    return float(value)
+
+
+def _step(params: dict[str, Any], codec: str) -> float:
+    step = _number(params, "step", codec)
+    if not 0 < step:
+        raise ArchiveError("bad_header", f"{codec}: step {step} must be positive")
+    return step
+
+
+def _keys(params: dict[str, Any], keys: set[str], codec: str) -> None:
+    if set(params) != keys:
+        raise ArchiveError("bad_header", f"{codec}: parameters {sorted(params)}, expected {sorted(keys)}")
+
+
+def _raw_length(shape: tuple[int, ...]) -> int:
+    return int(np.prod(shape, dtype=np.int64)) * 4
+
+
+def _check_raw(codec: str, shape: tuple[int, ...], raw_length: int) -> None:
+    if raw_length != _raw_length(shape):
+        raise ArchiveError("bad_header", f"{codec}: raw length {raw_length} for shape {shape}")
+
+
+def _finite(values: np.ndarray, codec: str) -> np.ndarray:
+    if values.dtype != np.float32:
+        raise ValueError(f"{codec} encodes float32 attributes, got {values.dtype}")
+    if not np.isfinite(values).all():
+        raise ValueError(f"{codec}: attributes must be finite to be quantised")
+    return values.astype(np.float64)
+
+
+def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: str) -> np.ndarray:
+    q = np.round((values - origin) / step)
+    if q.size and float(np.abs(q).max()) >= MAX_LEVELS:
+        raise ValueError(f"{codec}: step {step} puts values {float(np.abs(q).max()):.0f} cells from the origin")
+    return q.astype(np.int64)
+
+
+def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
+    table = decode_table(payload, n, c, codec)
+    if table.size and int(np.abs(table).max()) >= MAX_LEVELS:
+        raise ArchiveError("corrupt_section", f"{codec}: a symbol lies beyond {MAX_LEVELS} grid cells")
+    return table
+
+
+@dataclass(frozen=True)
+class PositionCodec:
+    """Positions [N, 3] on a cube grid of ``step`` world units from the bounding box's low corner."""
+
+    step: float
+    name: str = field(default="q-pos", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        x = _finite(values, self.name)
+        origin = x.min(axis=0) if len(x) else np.zeros(3)
+        q = _grid(x, origin, self.step, self.name)
+        params = {"origin": [float(o) for o in origin], "step": float(self.step)}
+        return EncodedSection(encode_table(q), _raw_length(values.shape), params)
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"origin", "step"}, self.name)
+        _step(params, self.name)
+        origin = params["origin"]
+        if not isinstance(origin, list) or len(origin) != 3:
+            raise ArchiveError("bad_header", f"{self.name}: origin must be 3 numbers, got {origin!r:.60}")
+        for i in range(3):
+            _number({"origin": origin[i]}, "origin", self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        q = _symbols(payload, shape[0], 3, self.name)
+        return (np.asarray(params["origin"]) + q * params["step"]).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class RotationCodec:
+    """Quaternions [N, 4] (w, x, y, z) as the largest component's index and the other three on a ``step`` grid."""
+
+    step: float
+    name: str = field(default="q-rot", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q = _finite(values, self.name)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
+        largest = np.abs(q).argmax(axis=1)
+        q *= np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
+        others = q[~np.eye(4, dtype=bool)[largest]].reshape(len(q), 3)
+        table = np.concatenate([largest[:, None], _grid(others, 0.0, self.step, self.name)], axis=1)
+        return EncodedSection(encode_table(table), _raw_length(values.shape), {"step": float(self.step)})
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"step"}, self.name)
+        _step(params, self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        n = shape[0]
+        table = _symbols(payload, n, 4, self.name)
+        largest = table[:, 0]
+        if n and (largest.min() < 0 or largest.max() > 3):
+            raise ArchiveError("corrupt_section", f"{self.name}: largest-component index outside 0..3")
+        others = np.clip(table[:, 1:] * params["step"], -SQRT1_2, SQRT1_2)
+        squares = (others**2).sum(axis=1)
+        # Rounding can push the three past unit length: rescale them so the quaternion stays unit.
+        scale = np.where(squares > 1.0, 1.0 / np.sqrt(np.maximum(squares, 1e-30)), 1.0)
+        others *= scale[:, None]
+        q = np.empty((n, 4))
+        mask = np.eye(4, dtype=bool)[largest]
+        q[~mask] = others.reshape(-1)
+        q[mask] = np.sqrt(np.clip(1.0 - (others**2).sum(axis=1), 0.0, 1.0))
+        return q.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ScalarGridCodec:
+    """Any float attribute [N, ...] on a ``step`` grid from its minimum (log-scales)."""
+
+    step: float
+    name: str = field(default="q-grid", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        x = _finite(values, self.name).reshape(len(values), -1)
+        origin = float(x.min()) if x.size else 0.0
+        q = _grid(x, origin, self.step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": float(self.step)})
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"origin", "step"}, self.name)
+        _step(params, self.name)
+        _number(params, "origin", self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        c = int(np.prod(shape[1:], dtype=np.int64))
+        q = _symbols(payload, shape[0], c, self.name)
+        return (params["origin"] + q * params["step"]).astype(np.float32).reshape(shape)
+
+
+@dataclass(frozen=True)
+class OpacityCodec:
+    """Opacity logits [N] quantised as alpha = sigmoid(logit) on a ``step`` grid in [0, 1]."""
+
+    step: float
+    name: str = field(default="q-alpha", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        alpha = 1.0 / (1.0 + np.exp(-_finite(values, self.name)))
+        q = _grid(alpha[:, None], 0.0, self.step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": float(self.step)})
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"step"}, self.name)
+        if not 0 < _step(params, self.name) <= 1:
+            raise ArchiveError("bad_header", f"{self.name}: step {params['step']} outside (0, 1]")
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        alpha = _symbols(payload, shape[0], 1, self.name)[:, 0] * params["step"]
+        lo, hi = 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MIN)), 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MAX))
+        alpha = np.clip(alpha, lo, hi)
+        return np.log(alpha / (1.0 - alpha)).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ShDcCodec:
+    """DC colour coefficients [N, 3] on a ``step`` grid around zero."""
+
+    step: float
+    name: str = field(default="q-dc", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q = _grid(_finite(values, self.name), 0.0, self.step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": float(self.step)})
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"step"}, self.name)
+        _step(params, self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        return (_symbols(payload, shape[0], 3, self.name) * params["step"]).astype(np.float32)
+
+
+def band_slices(degree: int) -> list[slice]:
+    """Rows of ``sh_rest`` [N, K, 3] that hold band l = 1..degree."""
+    return [slice(lvl * lvl - 1, (lvl + 1) * (lvl + 1) - 1) for lvl in range(1, degree + 1)]
+
+
+@dataclass(frozen=True)
+class ShRestCodec:
+    """Higher SH [N, K, 3]: one grid step per band, a per-Gaussian degree, only the bands up to it stored.
+
+    ``steps`` lists the step of band 1, 2, 3; a scene of lower degree uses the first ones.
+    """
+
+    steps: tuple[float, ...]
+    name: str = field(default="q-sh", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        n, k, _ = values.shape
+        degree = {0: 0, 3: 1, 8: 2, 15: 3}[k]
+        x = _finite(values, self.name)
+        if len(self.steps) < degree:
+            raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
+        bands = [_grid(x[:, s, :].reshape(n, -1), 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
+        present = np.stack([b.any(axis=1) for b in bands], axis=1) if bands else np.zeros((n, 0), dtype=bool)
+        # Degree of each Gaussian: the highest band with a non-zero symbol (0 when none).
+        per = np.zeros(n, dtype=np.int64)
+        if degree:
+            per = np.where(present.any(axis=1), degree - np.argmax(present[:, ::-1], axis=1), 0)
+        parts = [encode_table(per[:, None])]
+        for lvl, band in enumerate(bands, start=1):
+            parts.append(encode_table(band[per >= lvl].reshape(-1, 1)))
+        payload = b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+        params = {"steps": [float(s) for s in self.steps[:degree]]}
+        return EncodedSection(payload, _raw_length(values.shape), params)
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"steps"}, self.name)
+        degree = {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]]
+        steps = params["steps"]
+        if not isinstance(steps, list) or len(steps) != degree:
+            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} for SH degree {degree}")
+        for s in steps:
+            _step({"step": s}, self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        n, k, _ = shape
+        degree = len(params["steps"])
+        parts, pos = [], 0
+        for _ in range(degree + 1):
+            if pos + 4 > len(payload):
+                raise ArchiveError("corrupt_section", f"{self.name}: payload ends before part {len(parts)}")
+            length = int.from_bytes(payload[pos : pos + 4], "little")
+            parts.append(payload[pos + 4 : pos + 4 + length])
+            if len(parts[-1]) != length:
+                raise ArchiveError("corrupt_section", f"{self.name}: part {len(parts) - 1} is cut short")
+            pos += 4 + length
+        if pos != len(payload):
+            raise ArchiveError("corrupt_section", f"{self.name}: {len(payload) - pos} bytes after the last band")
+        per = decode_table(parts[0], n, 1, self.name)[:, 0]
+        if n and (per.min() < 0 or per.max() > degree):
+            raise ArchiveError("corrupt_section", f"{self.name}: a Gaussian's degree lies outside 0..{degree}")
+        out = np.zeros((n, k, 3), dtype=np.float32)
+        for lvl, (rows, step) in enumerate(zip(band_slices(degree), params["steps"]), start=1):
+            keep = per >= lvl
+            width = (rows.stop - rows.start) * 3
+            q = _symbols(parts[lvl], int(keep.sum()) * width, 1, self.name)
+            out[keep, rows, :] = (q * step).astype(np.float32).reshape(-1, rows.stop - rows.start, 3)
+        return out

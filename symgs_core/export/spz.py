@@ -1,0 +1,201 @@
+"""Niantic's `.spz`: writer and reader of versions 2, 3 (default) and 4, as the format's README documents them.
+
+Packed attributes, in stream order: positions as 24-bit signed fixed point (``fractional_bits``, 12 unless the scene
+needs more integer range), alphas u8 = sigmoid(logit) * 255, colours u8 = dc * 0.15 * 255 + 127.5, log-scales u8 =
+(s + 10) * 16, rotations (v2: x, y, z of the unit quaternion with w >= 0, u8 each; v3/v4: smallest three, a 2-bit
+index and three 1+9-bit sign-magnitude values scaled by 1/sqrt2, packed into a little-endian u32 with the index on
+top), SH u8 = round(v * 128) + 128 coefficient-major with the colour channel inner, degree 1 kept to 5 bits and
+higher bands to 4 (``sh1_bits``, ``sh_rest_bits``). Axes are RUB: our RDF scene is stored as (x, -y, -z), with the
+quaternion's y and z and the SH coefficients odd in y or z negated; readers flip back.
+Containers: v2/v3 gzip one stream, a 16-byte header (magic "NGSP", version, count, degree, fractional bits, flags,
+reserved) then the six attribute blocks; v4 a plaintext 32-byte header, a table of (compressed, uncompressed) u64
+sizes and one zstd frame per non-empty attribute block.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+import struct
+
+import numpy as np
+import torch
+
+from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
+from ..scene import SH_REST_COUNT, GaussianScene
+
+MAGIC = 0x5053474E
+COLOR_SCALE = 0.15
+VERSIONS = (2, 3, 4)
+# Sign of each SH rest coefficient (basis index 1..15) under the RDF -> RUB flip of y and z.
+SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
+_LEGACY_HEADER = struct.Struct("<IIIBBBB")
+_V4_HEADER = struct.Struct("<IIIBBBBI12s")
+
+
+class SpzError(ValueError):
+    """A file that is not a readable `.spz`."""
+
+
+def _u8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(x), 0, 255).astype(np.uint8)
+
+
+def _pack_rotations(quats: np.ndarray, version: int) -> np.ndarray:
+    """Unit quaternions [N, 4] (x, y, z, w) in RUB -> packed bytes [N, 3] (v2) or [N, 4] (v3, v4)."""
+    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
+    if version == 2:
+        q = q * np.where(q[:, 3:] < 0, -127.5, 127.5) + 127.5
+        return _u8(q[:, :3])
+    largest = np.abs(q).argmax(axis=1)
+    negate = q[np.arange(len(q)), largest] < 0
+    comp = largest.astype(np.uint32)
+    for i in range(4):
+        sign = ((q[:, i] < 0) ^ negate).astype(np.uint32)
+        mag = (511.0 * np.abs(q[:, i]) / math.sqrt(0.5) + 0.5).astype(np.uint32)
+        packed = (comp << np.uint32(10)) | (sign << np.uint32(9)) | np.minimum(mag, 511)
+        comp = np.where(largest == i, comp, packed)
+    return comp.astype("<u4").view(np.uint8).reshape(-1, 4)
+
+
+def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
+    """Inverse of ``_pack_rotations``: [N, 4] (x, y, z, w) unit quaternions."""
+    if version == 2:
+        xyz = raw.astype(np.float64) / 127.5 - 1.0
+        w = np.sqrt(np.clip(1.0 - (xyz**2).sum(axis=1), 0.0, 1.0))
+        return np.concatenate([xyz, w[:, None]], axis=1)
+    comp = raw.copy().view("<u4")[:, 0].astype(np.int64)
+    largest = comp >> 30
+    q = np.zeros((len(comp), 4))
+    for i in range(3, -1, -1):
+        here = largest != i
+        mag = (comp & 511).astype(np.float64) * math.sqrt(0.5) / 511.0
+        value = np.where((comp >> 9) & 1, -mag, mag)
+        q[here, i] = value[here]
+        comp = np.where(here, comp >> 10, comp)
+    q[np.arange(len(q)), largest] = np.sqrt(np.clip(1.0 - (q**2).sum(axis=1), 0.0, 1.0))
+    return q
+
+
+def _quantize_sh(x: np.ndarray, bits: int) -> np.ndarray:
+    bucket = 1 << (8 - bits)
+    q = np.round(x * 128.0).astype(np.int64) + 128
+    q = (q + bucket // 2) // bucket * bucket
+    return np.clip(q, 0, 255).astype(np.uint8)
+
+
+def _fractional_bits(means: np.ndarray) -> int:
+    """12, or fewer when the scene reaches beyond the +-2^11 that 24 bits hold at 12 fractional bits."""
+    reach = float(np.abs(means).max()) if means.size else 0.0
+    bits = 12
+    while bits > 0 and reach * (1 << bits) >= (1 << 23) - 1:
+        bits -= 1
+    return bits
+
+
+def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 5, sh_rest_bits: int = 4) -> bytes:
+    """The `.spz` bytes of ``scene`` (version 2, 3 or 4)."""
+    if version not in VERSIONS:
+        raise ValueError(f"spz version must be one of {VERSIONS}, got {version}")
+    if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
+        raise ValueError(f"SH bits must be in 1..8, got sh1_bits={sh1_bits} sh_rest_bits={sh_rest_bits}")
+    t = {k: v.detach().cpu().double().numpy() for k, v in scene.tensors().items()}
+    n, k = len(scene), scene.sh_rest.shape[1]
+    flip = np.array([1.0, -1.0, -1.0])
+    means = t["means"] * flip
+    frac = _fractional_bits(means)
+    fixed = np.round(means * (1 << frac)).astype(np.int64) & 0xFFFFFF
+    positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N, 3, 3]
+    alphas = _u8(255.0 / (1.0 + np.exp(-t["opacities"])))
+    colors = _u8(t["sh_dc"] * (COLOR_SCALE * 255.0) + 127.5)
+    scales = _u8((t["scales"] + 10.0) * 16.0)
+    wxyz = t["quats"]
+    xyzw = np.stack([wxyz[:, 1], -wxyz[:, 2], -wxyz[:, 3], wxyz[:, 0]], axis=1)
+    rotations = _pack_rotations(xyzw, version)
+    rest = t["sh_rest"] * SH_FLIP[:k, None]  # [N, K, 3]: coefficient-major, channel inner
+    sh = np.concatenate(
+        [_quantize_sh(rest[:, :3], sh1_bits).reshape(n, -1), _quantize_sh(rest[:, 3:], sh_rest_bits).reshape(n, -1)],
+        axis=1,
+    )
+    blocks = [positions.tobytes(), alphas.tobytes(), colors.tobytes(), scales.tobytes(), rotations.tobytes(),
+              sh.tobytes()]  # fmt: skip
+    degree = scene.sh_degree
+    if version < 4:
+        header = _LEGACY_HEADER.pack(MAGIC, version, n, degree, frac, 0, 0)
+        return gzip.compress(header + b"".join(blocks), compresslevel=6, mtime=0)
+    import zstandard
+
+    streams = [(zstandard.ZstdCompressor(level=12).compress(b), len(b)) for b in blocks if b]
+    header = _V4_HEADER.pack(MAGIC, 4, n, degree, frac, 0, len(streams), _V4_HEADER.size, bytes(12))
+    toc = b"".join(struct.pack("<QQ", len(c), u) for c, u in streams)
+    return header + toc + b"".join(c for c, _ in streams)
+
+
+def _blocks(data: bytes) -> tuple[int, int, int, int, list[bytes]]:
+    """(version, count, degree, fractional bits, the six attribute blocks) of a `.spz` file."""
+    if data[:4] == struct.pack("<I", MAGIC):
+        if len(data) < _V4_HEADER.size:
+            raise SpzError(f"spz: {len(data)} bytes, shorter than the v4 header")
+        magic, version, n, degree, frac, _flags, count, toc, _ = _V4_HEADER.unpack_from(data)
+        if version != 4 or degree not in SH_REST_COUNT or not 0 <= toc <= len(data) - 16 * count:
+            raise SpzError(f"spz: version {version}, SH degree {degree}, {count} streams at {toc}: not readable")
+        import zstandard
+
+        sizes = [struct.unpack_from("<QQ", data, toc + 16 * i) for i in range(count)]
+        pos, raw = toc + 16 * count, []
+        for compressed, uncompressed in sizes:
+            frame = data[pos : pos + compressed]
+            if len(frame) != compressed or uncompressed > 1 << 34:
+                raise SpzError("spz: a stream is cut short or claims too much")
+            raw.append(zstandard.ZstdDecompressor().decompress(frame, max_output_size=uncompressed))
+            pos += compressed
+        raw += [b""] * (6 - len(raw))
+        return version, n, degree, frac, raw
+    try:
+        body = gzip.decompress(data)
+    except (OSError, EOFError) as exc:
+        raise SpzError(f"spz: neither an NGSP header nor a gzip stream ({exc})") from exc
+    if len(body) < _LEGACY_HEADER.size:
+        raise SpzError("spz: gzip stream shorter than the header")
+    magic, version, n, degree, frac, _flags, _ = _LEGACY_HEADER.unpack_from(body)
+    if magic != MAGIC or version not in (2, 3) or degree not in SH_REST_COUNT:
+        raise SpzError(f"spz: magic {magic:#x}, version {version}, SH degree {degree}: not readable")
+    k = SH_REST_COUNT[degree]
+    sizes = [9 * n, n, 3 * n, 3 * n, (3 if version == 2 else 4) * n, 3 * k * n]
+    if len(body) < _LEGACY_HEADER.size + sum(sizes):
+        raise SpzError(f"spz: {len(body)} bytes decoded, {n} Gaussians need {_LEGACY_HEADER.size + sum(sizes)}")
+    pos, raw = _LEGACY_HEADER.size, []
+    for size in sizes:
+        raw.append(body[pos : pos + size])
+        pos += size
+    return version, n, degree, frac, raw
+
+
+def read_spz(data: bytes) -> GaussianScene:
+    """The scene in a `.spz` file (any of versions 2-4), back in our RDF axes."""
+    version, n, degree, frac, raw = _blocks(data)
+    k = SH_REST_COUNT[degree]
+    expected = [9 * n, n, 3 * n, 3 * n, (3 if version == 2 else 4) * n, 3 * k * n]
+    if [len(b) for b in raw] != expected:
+        raise SpzError(f"spz: attribute blocks of {[len(b) for b in raw]} bytes, expected {expected}")
+    pos = np.frombuffer(raw[0], dtype=np.uint8).reshape(n, 3, 3).astype(np.int64)
+    fixed = pos[..., 0] | (pos[..., 1] << 8) | (pos[..., 2] << 16)
+    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    means = fixed / float(1 << frac) * np.array([1.0, -1.0, -1.0])
+    alpha = np.clip(np.frombuffer(raw[1], dtype=np.uint8) / 255.0, 1e-6, 1 - 1e-6)
+    colors = (np.frombuffer(raw[2], dtype=np.uint8).reshape(n, 3) / 255.0 - 0.5) / COLOR_SCALE
+    scales = np.frombuffer(raw[3], dtype=np.uint8).reshape(n, 3) / 16.0 - 10.0
+    xyzw = _unpack_rotations(np.frombuffer(raw[4], dtype=np.uint8).reshape(n, -1), version)
+    wxyz = np.stack([xyzw[:, 3], xyzw[:, 0], -xyzw[:, 1], -xyzw[:, 2]], axis=1)
+    sh = (np.frombuffer(raw[5], dtype=np.uint8).reshape(n, k, 3) - 128.0) / 128.0 * SH_FLIP[:k, None]
+
+    # Alpha 0 and 255 clamp to the opacity range the PLY reader repairs infinities to, as splat-transform's do.
+    logits = np.clip(np.log(alpha / (1 - alpha)), OPACITY_LOGIT_MIN, OPACITY_LOGIT_MAX)
+
+    def f32(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+    return GaussianScene(
+        means=f32(means), quats=f32(wxyz), scales=f32(scales), opacities=f32(logits),
+        sh_dc=f32(colors), sh_rest=f32(sh),
+    )  # fmt: skip

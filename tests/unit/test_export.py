@@ -1,0 +1,153 @@
+"""Exports for web viewers: `.spz` (v2, v3, v4) and PlayCanvas `.compressed.ply`, round trips through our readers
+within each format's precision, the documented byte layout, and choice by extension."""
+
+from __future__ import annotations
+
+import gzip
+import math
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+from symgs_core.export import (
+    CompressedPlyError,
+    SpzError,
+    compressed_ply_order,
+    export_scene,
+    format_of,
+    import_scene,
+    read_compressed_ply,
+    read_spz,
+    write_compressed_ply,
+    write_spz,
+)
+from symgs_core.scene import GaussianScene
+
+C0 = 0.28209479177387814
+
+
+def scene_for_export(n: int = 1000, degree: int = 3, seed: int = 0, spread: float = 3.0) -> GaussianScene:
+    """Attributes inside every format's range: SH within +-1, DC within +-3, log-scales within [-10, 5]."""
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2 - 1
+    return GaussianScene(
+        means=(torch.rand(n, 3, generator=g) - 0.5) * 2 * spread,
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.rand(n, 3, generator=g) * 4 - 6,
+        opacities=torch.randn(n, generator=g) * 2,
+        sh_dc=torch.rand(n, 3, generator=g) * 4 - 2,
+        sh_rest=(torch.rand(n, k, 3, generator=g) - 0.5) * 1.6,
+    )
+
+
+def same_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|cos| of the half-angle between rotations [N]: 1 when equal (q and -q are one rotation)."""
+    a, b = torch.nn.functional.normalize(a, dim=1), torch.nn.functional.normalize(b, dim=1)
+    return (a * b).sum(dim=1).abs()
+
+
+def assert_within_spz_precision(ours: GaussianScene, scene: GaussianScene, version: int) -> None:
+    assert (ours.means - scene.means).abs().max() <= 0.5 / 4096 + 1e-6  # 12 fractional bits
+    assert (ours.scales - scene.scales).abs().max() <= 0.5 / 16 + 1e-5
+    assert (torch.sigmoid(ours.opacities) - torch.sigmoid(scene.opacities)).abs().max() <= 0.5 / 255 + 1e-5
+    assert (ours.sh_dc - scene.sh_dc).abs().max() <= 0.5 / (0.15 * 255) + 1e-5
+    # A 1/128 grid, then buckets of 8 (5 bits) for band 1 and of 16 (4 bits) above.
+    assert (ours.sh_rest[:, :3] - scene.sh_rest[:, :3]).abs().max() <= 4.5 / 128 + 1e-5
+    assert (ours.sh_rest[:, 3:] - scene.sh_rest[:, 3:]).abs().max() <= 8.5 / 128 + 1e-5
+    # v2: x, y, z at 8 bits and w recomputed (coarse where w is small); v3/v4: smallest three, 9-bit magnitudes.
+    assert same_rotation(ours.quats, scene.quats).min() >= (math.cos(0.1) if version == 2 else math.cos(0.003))
+
+
+@pytest.mark.parametrize("version", [2, 3, 4])
+def test_spz_round_trip_within_the_format_precision(version: int) -> None:
+    scene = scene_for_export()
+    data = write_spz(scene, version=version)
+    assert_within_spz_precision(read_spz(data), scene, version)
+
+
+def test_spz_layout_v3_is_one_gzip_stream_in_rub_axes_v4_a_plain_header() -> None:
+    scene = scene_for_export(n=3, degree=0)
+    body = gzip.decompress(write_spz(scene, version=3))
+    magic, version, n, degree, frac, flags, _ = struct.unpack_from("<IIIBBBB", body)
+    assert (magic, version, n, degree, frac, flags) == (0x5053474E, 3, 3, 0, 12, 0)
+    fixed = np.frombuffer(body[16 : 16 + 9], dtype=np.uint8).reshape(3, 3).astype(np.int64)
+    value = fixed[:, 0] | fixed[:, 1] << 8 | fixed[:, 2] << 16
+    value = np.where(value & 0x800000, value - (1 << 24), value) / 4096.0
+    expected = scene.means[0].numpy() * np.array([1, -1, -1])  # RUB: y and z flipped
+    assert np.allclose(value, expected, atol=0.5 / 4096 + 1e-7)
+    v4 = write_spz(scene, version=4)
+    assert v4[:4] == b"NGSP" and struct.unpack_from("<I", v4, 4)[0] == 4
+    assert struct.unpack_from("<B", v4, 15)[0] == 5  # five non-empty streams: no SH at degree 0
+
+
+def test_spz_gives_large_scenes_fewer_fractional_bits_instead_of_wrapping() -> None:
+    scene = scene_for_export(n=50, degree=0, spread=5000.0)
+    body = gzip.decompress(write_spz(scene, version=3))
+    assert body[13] < 12
+    assert (read_spz(write_spz(scene)).means - scene.means).abs().max() <= 0.5 / (1 << body[13]) + 1e-3
+
+
+def test_spz_sh_flip_matches_a_reflection_of_y_and_z() -> None:
+    """The stored SH must be the scene rotated 180 degrees about x: colours at (x, -y, -z) directions agree."""
+    from symgs_core.sh import eval_sh
+
+    scene = scene_for_export(n=1, degree=3)
+    body = gzip.decompress(write_spz(scene, version=3, sh1_bits=8, sh_rest_bits=8))
+    stored = (np.frombuffer(body[-45:], dtype=np.uint8).reshape(15, 3) - 128.0) / 128.0
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=1)
+    coeffs = torch.cat([torch.zeros(1, 3), scene.sh_rest[0]])
+    flipped = torch.cat([torch.zeros(1, 3), torch.from_numpy(stored).float()])
+    rub = dirs * torch.tensor([1.0, -1.0, -1.0])
+    stored_colour = eval_sh(flipped[None].expand(64, -1, -1), rub)
+    assert torch.allclose(stored_colour, eval_sh(coeffs[None].expand(64, -1, -1), dirs), atol=0.05)
+
+
+def test_compressed_ply_round_trip_within_chunk_precision() -> None:
+    scene = scene_for_export(n=1000, degree=2)
+    ours = read_compressed_ply(write_compressed_ply(scene))
+    ref = scene.select(compressed_ply_order(scene))
+    chunk = torch.arange(len(ref)) // 256
+    for c in range(int(chunk.max()) + 1):
+        part = chunk == c
+        span = ref.means[part].max(0).values - ref.means[part].min(0).values
+        bound = span / torch.tensor([2047.0, 1023.0, 2047.0]) * 0.5 + 1e-5
+        assert ((ours.means[part] - ref.means[part]).abs() <= bound).all()
+    assert (ours.scales - ref.scales).abs().max() <= 4.0 / 1023 * 0.5 + 1e-4
+    assert (torch.sigmoid(ours.opacities) - torch.sigmoid(ref.opacities)).abs().max() <= 0.5 / 255 + 1e-5
+    assert ((ours.sh_dc - ref.sh_dc) * C0).abs().max() <= 4 * C0 / 255 * 0.5 + 1e-5
+    assert (ours.sh_rest - ref.sh_rest).abs().max() <= 8 / 256 + 1e-5
+    assert same_rotation(ours.quats, ref.quats).min() >= math.cos(0.003)
+
+
+def test_compressed_ply_has_the_playcanvas_header() -> None:
+    data = write_compressed_ply(scene_for_export(n=300, degree=1))
+    head = data[: data.index(b"end_header\n")].decode()
+    assert "element chunk 2" in head and "element vertex 300" in head and "element sh 300" in head
+    assert head.count("property uint packed_") == 4 and head.count("property uchar f_rest_") == 9
+    with pytest.raises(CompressedPlyError):
+        read_compressed_ply(data[:-1])
+
+
+def test_export_chooses_the_format_by_extension(tmp_path) -> None:  # noqa: ANN001
+    scene = scene_for_export(n=200, degree=1)
+    assert format_of("a/b.compressed.ply") == "compressed.ply" and format_of("x.PLY") == "ply"
+    for name in ("s.ply", "s.spz", "s.compressed.ply"):
+        export_scene(scene, tmp_path / name)
+        back = import_scene(tmp_path / name)
+        assert len(back) == 200 and back.sh_degree == 1
+    assert gzip.decompress((tmp_path / "s.spz").read_bytes())[4] == 3  # version 3 by default
+    export_scene(scene, tmp_path / "v4.spz", version=4)
+    assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP"
+    with pytest.raises(ValueError, match="unsupported export format"):
+        export_scene(scene, tmp_path / "s.splat")
+
+
+def test_readers_refuse_what_is_not_their_format() -> None:
+    with pytest.raises(SpzError):
+        read_spz(b"not an spz file at all")
+    with pytest.raises(SpzError):
+        read_spz(gzip.compress(b"\x00" * 40))
+    with pytest.raises(CompressedPlyError):
+        read_compressed_ply(b"ply\nformat ascii 1.0\nend_header\n")

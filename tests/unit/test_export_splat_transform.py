@@ -1,0 +1,97 @@
+"""Our `.spz` and `.compressed.ply` read by the real third-party reader, PlayCanvas ``splat-transform`` (npm), and
+its files read by ours. Skips, with the reason, without Node.js or when the package cannot be installed.
+
+The package is installed once into a cache folder outside the repository (``SYMGS_NPM_CACHE``, default
+``~/.cache/symgs/npm``); set ``SPLAT_TRANSFORM`` to an existing executable to use that instead.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from symgs_core.export import compressed_ply_order, read_compressed_ply, read_spz, write_compressed_ply, write_spz
+from symgs_core.ply import load_scene, save_scene
+from tests.unit.test_export import assert_within_spz_precision, scene_for_export
+
+PACKAGE = "@playcanvas/splat-transform@2.7.1"
+
+
+@pytest.fixture(scope="module")
+def splat_transform() -> str:
+    given = os.environ.get("SPLAT_TRANSFORM")
+    if given:
+        return given
+    if shutil.which("node") is None or shutil.which("npm") is None:
+        pytest.skip("Node.js/npm not installed: cannot run PlayCanvas splat-transform")
+    cache = Path(os.environ.get("SYMGS_NPM_CACHE", Path.home() / ".cache" / "symgs" / "npm"))
+    exe = cache / "node_modules" / ".bin" / "splat-transform"
+    if not exe.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        try:
+            done = subprocess.run(
+                ["npm", "install", "--prefix", str(cache), "--no-audit", "--no-fund", PACKAGE],
+                capture_output=True, text=True, timeout=240,
+            )  # fmt: skip
+        except subprocess.TimeoutExpired:
+            pytest.skip(f"npm install {PACKAGE} timed out (registry unreachable?)")
+        if done.returncode != 0 or not exe.exists():
+            pytest.skip(f"npm install {PACKAGE} failed: {done.stderr.strip()[-300:]}")
+    return str(exe)
+
+
+def convert(exe: str, source: Path, target: Path) -> None:
+    done = subprocess.run([exe, "-w", "-q", str(source), str(target)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def assert_same_scene(theirs, ours, atol: float = 1e-5) -> None:  # noqa: ANN001
+    for name, value in ours.tensors().items():
+        other = theirs.tensors()[name]
+        if name == "quats":  # either sign of a quaternion is the same rotation
+            other = other * torch.where((other * value).sum(1, keepdim=True) < 0, -1.0, 1.0)
+        assert torch.allclose(other, value, atol=atol, rtol=1e-5), name
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_splat_transform_decodes_our_spz_as_our_reader_does(splat_transform: str, tmp_path: Path, version: int) -> None:
+    scene = scene_for_export(n=700, degree=3, seed=version)
+    (tmp_path / "ours.spz").write_bytes(write_spz(scene, version=version))
+    convert(splat_transform, tmp_path / "ours.spz", tmp_path / "theirs.ply")
+    theirs = load_scene(tmp_path / "theirs.ply")
+    ours = read_spz((tmp_path / "ours.spz").read_bytes())
+    assert_same_scene(theirs, ours)
+    assert_within_spz_precision(theirs, scene, version)
+
+
+def test_splat_transform_decodes_our_compressed_ply_as_our_reader_does(splat_transform: str, tmp_path: Path) -> None:
+    scene = scene_for_export(n=900, degree=2, seed=7)
+    (tmp_path / "ours.compressed.ply").write_bytes(write_compressed_ply(scene))
+    convert(splat_transform, tmp_path / "ours.compressed.ply", tmp_path / "theirs.ply")
+    theirs = load_scene(tmp_path / "theirs.ply")
+    ours = read_compressed_ply((tmp_path / "ours.compressed.ply").read_bytes())
+    assert_same_scene(theirs, ours)
+    ref = scene.select(compressed_ply_order(scene))
+    assert (theirs.means - ref.means).abs().max() < 6.0 / 1023  # 10-11 bits in each chunk's box of side <= 6
+
+
+def test_our_readers_decode_splat_transform_files(splat_transform: str, tmp_path: Path) -> None:
+    from scipy.spatial import cKDTree
+
+    scene = scene_for_export(n=600, degree=3, seed=9)
+    save_scene(scene, tmp_path / "source.ply")
+    convert(splat_transform, tmp_path / "source.ply", tmp_path / "theirs.spz")
+    assert_within_spz_precision(read_spz((tmp_path / "theirs.spz").read_bytes()), scene, version=4)
+    convert(splat_transform, tmp_path / "source.ply", tmp_path / "theirs.compressed.ply")
+    decoded = read_compressed_ply((tmp_path / "theirs.compressed.ply").read_bytes())
+    assert len(decoded) == len(scene)
+    distance, index = cKDTree(scene.means.numpy()).query(decoded.means.numpy())
+    assert distance.max() < 6.0 / 1023 and len(np.unique(index)) > 0.98 * len(scene)
+    matched = scene.select(torch.from_numpy(index))
+    assert (torch.sigmoid(decoded.opacities) - torch.sigmoid(matched.opacities)).abs().median() < 1 / 255

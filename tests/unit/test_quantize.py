@@ -1,0 +1,188 @@
+"""Quantising section codecs and their entropy coder: exact symbol round trips, error within half a step, per-Gaussian
+SH degrees, hostile payloads, and a pinned encoding of a small quantised archive."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive, register_quantized
+from symgs_core.codec.entropy import MAX_ALPHABET, decode_table, encode_table
+from symgs_core.codec.quantize import (
+    OpacityCodec,
+    PositionCodec,
+    RotationCodec,
+    ScalarGridCodec,
+    ShDcCodec,
+    ShRestCodec,
+)
+from symgs_core.codec.steps import QuantSteps
+from symgs_core.scene import GaussianScene
+
+
+def _roundtrip(codec, values: np.ndarray) -> tuple[np.ndarray, int]:  # noqa: ANN001
+    coded = codec.encode(values)
+    codec.check(values.shape, coded.params, coded.raw_length)
+    return codec.decode(coded.payload, values.shape, coded.params, coded.raw_length), len(coded.payload)
+
+
+def _random_scene(n: int, degree: int, seed: int) -> GaussianScene:
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2 - 1
+    return GaussianScene(
+        means=torch.randn(n, 3, generator=g) * 2.0,
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.randn(n, 3, generator=g) - 4.0,
+        opacities=torch.randn(n, generator=g) * 3.0,
+        sh_dc=torch.randn(n, 3, generator=g),
+        sh_rest=torch.randn(n, k, 3, generator=g) * 0.2,
+    )
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    arrays(np.int64, st.tuples(st.integers(0, 120), st.integers(1, 3)), elements=st.integers(-(2**29), 2**29 - 1))
+)
+def test_entropy_tables_round_trip_exactly(table: np.ndarray) -> None:
+    assert np.array_equal(decode_table(encode_table(table), *table.shape, "t"), table)
+
+
+def test_entropy_coder_picks_ans_for_skewed_symbols_and_zstd_for_huge_alphabets() -> None:
+    rng = np.random.default_rng(0)
+    skewed = rng.geometric(0.6, size=(20000, 1)).astype(np.int64)
+    entropy = -(np.bincount(skewed[:, 0]) / len(skewed) * np.log2(np.bincount(skewed[:, 0]) / len(skewed) + 1e-300))
+    bound = float(np.nansum(entropy)) * len(skewed) / 8
+    assert len(encode_table(skewed)) < 1.03 * bound + 64  # within 3% of the order-0 entropy
+    wide = rng.integers(0, 4 * MAX_ALPHABET, size=(500, 1))
+    assert np.array_equal(decode_table(encode_table(wide), 500, 1, "t"), wide)
+
+
+def test_positions_land_within_half_a_step_of_the_grid() -> None:
+    values = np.random.default_rng(1).normal(size=(2000, 3)).astype(np.float32) * 5
+    out, _ = _roundtrip(PositionCodec(1e-3), values)
+    assert np.abs(out - values).max() <= 0.5e-3 + 1e-5
+
+
+def test_morton_ordered_positions_code_smaller_than_shuffled_ones() -> None:
+    from symgs_core.codec import morton_codes
+
+    values = np.random.default_rng(2).random((20000, 3)).astype(np.float32)
+    ordered = values[torch.argsort(morton_codes(torch.from_numpy(values))).numpy()]
+    _, sorted_bytes = _roundtrip(PositionCodec(2.0**-16), ordered)
+    _, random_bytes = _roundtrip(PositionCodec(2.0**-16), values)
+    assert sorted_bytes < 0.92 * random_bytes
+
+
+def test_rotations_decode_to_unit_quaternions_of_the_same_rotation() -> None:
+    quats = np.random.default_rng(3).normal(size=(5000, 4)).astype(np.float32)
+    step = 1.0 / 256
+    out, _ = _roundtrip(RotationCodec(step), quats)
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-6)
+    unit = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    dots = np.abs((out * unit).sum(axis=1))  # q and -q are one rotation
+    # Three components off by at most step/2 each, the fourth recomputed: the angle between them stays tiny.
+    assert dots.min() > math.cos(2.0 * step)
+
+
+def test_scales_dc_and_opacity_within_half_a_step() -> None:
+    rng = np.random.default_rng(4)
+    scales = (rng.normal(size=(3000, 3)) - 4).astype(np.float32)
+    out, _ = _roundtrip(ScalarGridCodec(1 / 16), scales)
+    assert np.abs(out - scales).max() <= 1 / 32 + 1e-5
+    dc = rng.normal(size=(3000, 3)).astype(np.float32)
+    out, _ = _roundtrip(ShDcCodec(0.01), dc)
+    assert np.abs(out - dc).max() <= 0.005 + 1e-6
+    logits = rng.normal(size=3000).astype(np.float32) * 3
+    out, _ = _roundtrip(OpacityCodec(1 / 255), logits)
+    alpha, decoded = 1 / (1 + np.exp(-logits)), 1 / (1 + np.exp(-out.astype(np.float64)))
+    visible = alpha > 2 / 255
+    assert np.abs(decoded - alpha)[visible].max() <= 0.5 / 255 + 1e-6
+    assert (decoded[~visible] < 2.5 / 255).all()  # the invisible stay (almost) invisible
+
+
+def test_sh_rest_keeps_a_degree_per_gaussian_and_dropped_bands_cost_nothing() -> None:
+    rng = np.random.default_rng(5)
+    rest = (rng.normal(size=(4000, 15, 3)) * 0.3).astype(np.float32)
+    truncated = rest.copy()
+    truncated[:2000, 3:] = 0.0  # degree 1 for the first half
+    truncated[2000:3000, :] = 0.0  # degree 0
+    codec = ShRestCodec((0.02, 0.02, 0.02))
+    out, small = _roundtrip(codec, truncated)
+    _, full = _roundtrip(codec, rest)
+    assert np.abs(out - truncated).max() <= 0.01 + 1e-6
+    assert (out[:2000, 3:] == 0).all() and (out[2000:3000] == 0).all()
+    assert small < 0.6 * full
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
+    from symgs_core.budget import quantized
+
+    scene = _random_scene(700, degree, seed=degree)
+    steps = QuantSteps().scaled(3.0)
+    extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
+    name = register_quantized("test-quantized", steps, extent)
+    contents = ArchiveContents(scene, [], torch.zeros(len(scene), 0, dtype=torch.bool), {"x": 1})
+    data = encode_archive(contents, codec=name)
+    decoded = decode_archive(data).stored
+    expected = quantized(scene, steps)
+    for key, value in decoded.tensors().items():
+        assert torch.equal(value, expected.tensors()[key]), key
+    assert len(data) < 0.35 * len(encode_archive(contents))
+
+
+def test_quantized_archive_encoding_is_pinned() -> None:
+    """A format change must be deliberate: re-pin with the new digest only when the stream layout changes."""
+    scene = _random_scene(300, 1, seed=11)
+    name = register_quantized("test-pinned", QuantSteps(), 8.0)
+    data = encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {}), codec=name)
+    assert hashlib.sha256(data).hexdigest() == PINNED
+
+
+PINNED = "6018d389523549ddedc51c7d3a30f354d66d223bab8d6247d177a9e7aef71b5b"
+
+
+@pytest.mark.parametrize(
+    ("codec", "shape", "params"),
+    [
+        (PositionCodec(1.0), (4, 3), {"origin": [0, 0, 0], "step": -1.0}),
+        (PositionCodec(1.0), (4, 3), {"origin": [0, 0], "step": 1.0}),
+        (RotationCodec(1.0), (4, 4), {"step": float("nan")}),
+        (OpacityCodec(0.1), (4,), {"step": 2.0}),
+        (ShRestCodec((0.1,)), (4, 3, 3), {"steps": [0.1, 0.1]}),
+        (ShDcCodec(0.1), (4, 3), {"step": 0.1, "extra": 1}),
+    ],
+)
+def test_impossible_parameters_are_refused_before_decoding(codec, shape, params) -> None:  # noqa: ANN001
+    with pytest.raises(ArchiveError) as err:
+        codec.check(shape, params, int(np.prod(shape)) * 4)
+    assert err.value.code == "bad_header"
+
+
+@pytest.mark.parametrize("cut", [1, 7, 30])
+def test_cut_or_corrupt_payloads_are_corrupt_sections(cut: int) -> None:
+    values = np.random.default_rng(6).normal(size=(200, 3)).astype(np.float32)
+    codec = ShDcCodec(0.05)
+    coded = codec.encode(values)
+    with pytest.raises(ArchiveError) as err:
+        codec.decode(coded.payload[:-cut], values.shape, coded.params, coded.raw_length)
+    assert err.value.code == "corrupt_section"
+    rest = (np.random.default_rng(7).normal(size=(50, 8, 3)) * 0.3).astype(np.float32)
+    sh = ShRestCodec((0.05, 0.05))
+    coded = sh.encode(rest)
+    with pytest.raises(ArchiveError):
+        sh.decode(coded.payload[: len(coded.payload) // 2], rest.shape, coded.params, coded.raw_length)
+
+
+def test_attributes_that_cannot_be_quantised_are_refused() -> None:
+    with pytest.raises(ValueError, match="finite"):
+        PositionCodec(0.1).encode(np.array([[0, np.inf, 0]], dtype=np.float32))
+    with pytest.raises(ValueError, match="cells"):
+        PositionCodec(1e-9).encode(np.array([[0, 0, 0], [100, 0, 0]], dtype=np.float32))
