@@ -15,6 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="archive to write (.symgs)")
     p.add_argument("--images", type=Path, help="posed images (NeRF-Synthetic or COLMAP folder)")
     p.add_argument("--report", type=Path, help="write the JSON report here")
+    p.add_argument("--pictures", type=Path, help="write the PNG pictures and charts (as a job's) into this folder")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.add_argument("--psnr-budget", type=float, default=0.5, help="dB the mirrors may cost in total (default 0.5)")
     p.add_argument("--max-levels", type=int, default=4)
@@ -53,6 +54,7 @@ def _compress(args: argparse.Namespace) -> int:
             eval_views=args.eval_views,
             device=args.device,
             use_mirrors=not args.no_mirrors,
+            pictures=args.pictures is not None,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
@@ -78,6 +80,10 @@ def _compress(args: argparse.Namespace) -> int:
     args.output.write_bytes(result.archive)
     if args.report is not None:
         args.report.write_text(json.dumps(result.report, indent=2))
+    if args.pictures is not None:
+        args.pictures.mkdir(parents=True, exist_ok=True)
+        for name, png in result.images.items():
+            (args.pictures / f"{name}.png").write_bytes(png)
     r = result.report
     levels = [lv for lv in r["levels"] if lv["accepted"]]
     ratio = f"{r['ratio_to_ply']:.2f}x vs PLY, " if r["ratio_to_ply"] else ""

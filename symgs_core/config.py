@@ -22,6 +22,7 @@ class CompressConfig:
     iterations    optimisation steps per level.
     train_views / eval_views  self-supervised camera counts (images given: their own train/test split).
     resolution    longest side, in pixels, of the views rendered for optimisation and evaluation.
+    pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
     """
 
     preset: Preset = "balanced"
@@ -34,6 +35,7 @@ class CompressConfig:
     resolution: int = 192
     device: DeviceChoice = "auto"
     use_mirrors: bool = True
+    pictures: bool = True
     seed: int = 0
     detect: dict = field(default_factory=dict)  # overrides of DetectConfig fields
 

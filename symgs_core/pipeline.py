@@ -155,7 +155,6 @@ def compress(
     decoded = expand_archive(decode_archive(archive)).to(device)
     final_psnr, final_ssim = evaluate(decoded, views.test, background)
     report.timed("evaluate", time.perf_counter() - t0)
-    report("evaluate", 1.0, "done")
 
     out = {
         "input_bytes": input_bytes,
@@ -174,7 +173,16 @@ def compress(
         "device": str(device),
         "config": asdict(config),
     }
-    return CompressResult(archive=archive, report=_json_safe(out))
+    images: dict[str, bytes] = {}
+    if config.pictures:
+        from .pictures import job_pictures
+
+        t0 = time.perf_counter()
+        report("evaluate", 0.5, "drawing pictures")
+        images = job_pictures(source, decoded, views, records, _json_safe(out))
+        report.timed("pictures", time.perf_counter() - t0)
+    report("evaluate", 1.0, "done")
+    return CompressResult(archive=archive, report=_json_safe(out), images=images)
 
 
 def decompress(archive: bytes | str | Path) -> GaussianScene:
