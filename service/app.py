@@ -19,6 +19,7 @@ from worker.settings import Settings
 from worker.storage import storage_from_settings
 from worker.store import JobStore
 
+from .dashboard.routes import router as dashboard_router
 from .errors import install_handlers
 from .metrics import make_registry
 from .routes import events, jobs, ops, results
@@ -66,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_handlers(app)
     for module in (jobs, events, results, ops):
         app.include_router(module.router)
+    app.include_router(dashboard_router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

@@ -1,0 +1,353 @@
+// One job: live progress per stage and mirror level, then its metrics, mirrors, charts, pictures and downloads.
+
+import {
+  ApiError,
+  AuthError,
+  LEVEL_COLOURS,
+  TERMINAL,
+  api,
+  blobUrl,
+  el,
+  followEvents,
+  formatBytes,
+  formatPsnr,
+  formatRatio,
+  formatSeconds,
+  formatTime,
+  setupKeyPanel,
+} from "./app.js";
+
+const jobId = decodeURIComponent(location.pathname.split("/").pop());
+const jobPath = `/v1/jobs/${encodeURIComponent(jobId)}`;
+const $ = (id) => document.getElementById(id);
+const CHARTS = {
+  rate_distortion: "Rate and distortion: PSNR against archive size for the baseline, each mirror level and the final archive",
+  speed_accuracy: "Speed and accuracy: PSNR against the seconds since the job started, stage by stage",
+};
+const STEP = /step (\d+)\/(\d+)/; // the pipeline's level messages: "level 0: step 80/200 loss 0.0123"
+
+let stream = null;
+let resultsShown = false;
+const stages = []; // {name, li, bar, status, start}
+const levels = []; // {level, li, bar, status}
+
+const askKey = setupKeyPanel(() => {
+  stream?.abort();
+  load();
+});
+
+function setBadge(state) {
+  const badge = $("state");
+  badge.textContent = state;
+  badge.className = `badge state-${state}`;
+}
+
+function setOverall(state, progress, message) {
+  setBadge(state);
+  const bar = $("overall");
+  if (state === "queued") bar.removeAttribute("value");
+  else bar.value = progress;
+  $("overall-pct").textContent = state === "queued" ? "waiting for a worker" : `${Math.round(progress * 100)}%`;
+  $("message").textContent = message || "";
+  $("cancel").hidden = TERMINAL.has(state);
+}
+
+function step(item, name, label) {
+  const bar = el("progress", { max: 1, "aria-label": `Progress of ${label}` });
+  const status = el("span", { className: "step-status" });
+  const li = el("li", { "data-name": name }, el("span", { className: "step-name" }, label), bar, status);
+  return { name, li, bar, status, ...item };
+}
+
+function finish(item, how, seconds) {
+  if (!item || item.done) return;
+  item.done = true;
+  if (how === "done") item.bar.value = 1;
+  else if (item.bar.position < 0) item.bar.value = 0; // an indeterminate bar stops moving
+  item.status.textContent = how === "done" ? `done${seconds == null ? "" : ` in ${formatSeconds(seconds)}`}` : how;
+  item.li.dataset.done = how;
+}
+
+function onStage(event) {
+  if (!event.stage || event.stage === "done") return;
+  let current = stages[stages.length - 1];
+  if (!current || current.name !== event.stage) {
+    if (current) finish(current, "done", event.time - current.start);
+    current = step({ start: event.time }, event.stage, event.stage);
+    stages.push(current);
+    $("stages").append(current.li);
+  }
+  current.status.textContent = event.message || "running";
+}
+
+function onLevel(event) {
+  if (event.level == null) return;
+  let current = levels[levels.length - 1];
+  if (!current || current.level !== event.level) {
+    if (current) finish(current, "done", event.time - current.start);
+    current = step({ level: event.level, start: event.time }, `level-${event.level}`, `level ${event.level}`);
+    levels.push(current);
+    $("levels").append(current.li);
+    $("levels-empty").hidden = true;
+  }
+  const match = STEP.exec(event.message || "");
+  if (match) current.bar.value = Number(match[1]) / Math.max(Number(match[2]), 1);
+  current.status.textContent = event.message || "";
+}
+
+function onEvent(event) {
+  setOverall(event.state, event.progress, event.message);
+  if (event.kind === "progress") {
+    // Leaving the level stage ends its last level.
+    if (event.stage !== "levels" && event.level == null) finish(levels[levels.length - 1], "done", null);
+    onStage(event);
+    onLevel(event);
+  } else if (TERMINAL.has(event.state)) {
+    const how = event.state === "succeeded" ? "done" : event.state;
+    const last = stages[stages.length - 1];
+    finish(last, how, last ? event.time - last.start : null);
+    finish(levels[levels.length - 1], how, null);
+  }
+}
+
+function fact(list, term, value) {
+  list.append(el("dt", {}, term), el("dd", {}, value));
+}
+
+function showJob(job) {
+  document.title = `${job.scene.filename} \u00b7 SymGS`;
+  $("title").textContent = `${job.scene.filename}`;
+  $("progress-section").hidden = false;
+  setOverall(job.state, job.progress, job.message);
+  if (job.cancel_requested && !TERMINAL.has(job.state)) $("message").textContent = "Cancelling\u2026";
+  const error = $("error");
+  error.hidden = !job.error;
+  error.textContent = job.error ? `${job.error.code}: ${job.error.message}` : "";
+  const facts = $("facts");
+  facts.replaceChildren();
+  const p = job.params;
+  fact(facts, "Job", job.id);
+  fact(facts, "Scene", `${formatBytes(job.scene.bytes)}, ${job.scene.gaussians} Gaussians, SH degree ${job.scene.sh_degree}`);
+  fact(facts, "Images", job.images ? `${job.images.images} (${job.images.layout})` : "none: judged against renders of the input");
+  fact(facts, "Settings", `${p.preset}, PSNR budget ${p.psnr_budget} dB, at most ${p.max_levels} levels, device ${p.device}`);
+  fact(facts, "Queue", job.queue);
+  fact(facts, "Created", formatTime(job.created_at));
+  if (job.started_at) fact(facts, "Started", formatTime(job.started_at));
+  if (job.finished_at) fact(facts, "Finished", formatTime(job.finished_at));
+  if (job.attempts > 1) fact(facts, "Attempts", String(job.attempts));
+}
+
+function row(table, label, value) {
+  table.append(el("tr", {}, el("th", { scope: "row" }, label), el("td", { className: "num" }, value)));
+}
+
+function showMetrics(report) {
+  const t = document.querySelector("#metrics tbody");
+  t.replaceChildren();
+  row(t, "Input (PLY)", report.input_bytes ? formatBytes(report.input_bytes) : "\u2013");
+  row(t, "Archive", formatBytes(report.output_bytes));
+  row(t, "Baseline archive (plain codec)", formatBytes(report.baseline_bytes));
+  row(t, "Ratio to PLY", formatRatio(report.ratio_to_ply));
+  row(t, "Ratio to baseline", formatRatio(report.ratio_to_baseline));
+  row(t, `PSNR against ${report.psnr_reference}`, formatPsnr(report.psnr));
+  row(t, "SSIM", report.ssim == null ? "\u2013" : report.ssim.toFixed(4));
+  const g = report.gaussians;
+  row(t, "Gaussians: input / stored / decoded", `${g.input} / ${g.stored} / ${g.decoded}`);
+  row(t, "Device", report.device);
+  const s = document.querySelector("#seconds tbody");
+  s.replaceChildren();
+  let total = 0;
+  for (const [stage, seconds] of Object.entries(report.seconds)) {
+    row(s, stage, formatSeconds(seconds));
+    total += seconds;
+  }
+  row(s, "total", formatSeconds(total));
+  $("metrics-section").hidden = false;
+}
+
+function unit(normal) {
+  const norm = Math.hypot(...normal) || 1;
+  return normal.map((v) => v / norm);
+}
+
+function showMirrors(report) {
+  const body = document.querySelector("#mirrors tbody");
+  body.replaceChildren();
+  for (const level of report.levels) {
+    const swatch = el("span", { className: "swatch", "aria-hidden": "true" });
+    if (level.accepted) swatch.style.background = LEVEL_COLOURS[level.level % LEVEL_COLOURS.length];
+    const n = unit(level.normal).map((v) => (v + 0).toFixed(3)).join(", ");
+    const share = report.gaussians.input ? `${((100 * level.right) / report.gaussians.input).toFixed(1)}%` : "\u2013";
+    body.append(
+      el(
+        "tr",
+        { "data-accepted": String(level.accepted) },
+        el("td", {}, swatch, ` ${level.level}`),
+        el("td", { className: "mono" }, `(${n})`),
+        el("td", { className: "num" }, level.offset.toFixed(4)),
+        el("td", { className: "num" }, String(level.right)),
+        el("td", { className: "num" }, share),
+        el("td", { className: "num" }, formatPsnr(level.psnr_after)),
+        el("td", {}, level.accepted ? "accepted" : `rolled back${level.reason ? `: ${level.reason}` : ""}`),
+      ),
+    );
+  }
+  if (!report.levels.length) {
+    body.append(el("tr", {}, el("td", { colSpan: 7 }, "No mirror was found in this scene.")));
+  }
+  $("mirrors-section").hidden = false;
+}
+
+function pictureCaption(name) {
+  if (CHARTS[name]) return CHARTS[name];
+  if (name === "mirrors") return "The accepted mirror planes over the input scene, one colour per level (as in the table)";
+  const compare = /^compare_(\d+)$/.exec(name);
+  if (compare) {
+    return `Held-out view ${Number(compare[1]) + 1}: the uncompressed scene, the decoded scene and their difference`;
+  }
+  return name.replaceAll("_", " ");
+}
+
+async function figure(container, name) {
+  const caption = pictureCaption(name);
+  const img = el("img", { alt: caption, "data-name": name, decoding: "async" });
+  container.append(el("figure", {}, img, el("figcaption", {}, caption)));
+  try {
+    img.src = await blobUrl(`${jobPath}/charts/${encodeURIComponent(name)}.png`);
+  } catch (err) {
+    img.alt = `${caption} (could not be loaded: ${err.message})`;
+  }
+}
+
+function showPictures(job) {
+  const names = job.artifacts.filter((a) => /^charts\/[A-Za-z0-9_-]+\.png$/.test(a)).map((a) => a.slice(7, -4));
+  const order = (n) => (CHARTS[n] ? 0 : n === "mirrors" ? 1 : 2);
+  names.sort((a, b) => order(a) - order(b) || a.localeCompare(b, undefined, { numeric: true }));
+  $("charts").replaceChildren();
+  $("pictures").replaceChildren();
+  for (const name of names) figure(CHARTS[name] ? $("charts") : $("pictures"), name);
+  $("charts-section").hidden = !names.some((n) => CHARTS[n]);
+  $("pictures-section").hidden = !names.some((n) => !CHARTS[n]);
+}
+
+// What each artifact is, and where the API serves it.
+function download(name) {
+  if (name === "result.symgs") return ["Compressed archive (.symgs)", `${jobPath}/result`];
+  if (name === "report.json") return ["Metrics report (JSON)", `${jobPath}/report`];
+  if (name.startsWith("result.")) return [`Decoded scene (.${name.slice(7)})`, `${jobPath}/${name}`];
+  if (name.startsWith("charts/")) return [`${name.slice(7)}`, `${jobPath}/${name}`];
+  return null;
+}
+
+function showDownloads(job) {
+  const list = $("downloads");
+  list.replaceChildren();
+  const rank = (n) => (n === "result.symgs" ? 0 : n.startsWith("result.") ? 1 : n === "report.json" ? 2 : 3);
+  for (const name of [...job.artifacts].sort((a, b) => rank(a) - rank(b) || a.localeCompare(b))) {
+    const entry = download(name);
+    if (!entry) continue;
+    const [label, href] = entry;
+    const filename = `${job.id}-${name.replace("/", "-")}`;
+    const link = el("a", { href, download: filename }, label);
+    // A plain link cannot send the API key: fetch the file with it and hand the browser the bytes.
+    link.addEventListener("click", async (event) => {
+      if (!sessionStorage.getItem("symgs.apiKey")) return;
+      event.preventDefault();
+      try {
+        const url = await blobUrl(href);
+        const a = el("a", { href: url, download: filename });
+        document.body.append(a);
+        a.click();
+        a.remove();
+        setTimeout(() => URL.revokeObjectURL(url), 60000);
+      } catch (err) {
+        $("job-status").textContent = `Download failed: ${err.message}`;
+      }
+    });
+    list.append(el("li", {}, link));
+  }
+  $("downloads-section").hidden = !list.children.length;
+}
+
+async function showResults(job) {
+  if (resultsShown || job.state !== "succeeded") return;
+  resultsShown = true;
+  try {
+    const report = await api(`${jobPath}/report`);
+    showMetrics(report);
+    showMirrors(report);
+  } catch (err) {
+    $("job-status").textContent = `Could not load the report: ${err.message}`;
+  }
+  showPictures(job);
+  showDownloads(job);
+}
+
+function showSecondsAsStages(job, report) {
+  // A finished job shows its stages from the report (the event stream is not replayed for it).
+  for (const [stage, seconds] of Object.entries(report.seconds)) {
+    const item = step({ start: 0 }, stage, stage);
+    stages.push(item);
+    $("stages").append(item.li);
+    finish(item, "done", seconds);
+  }
+  for (const level of report.levels) {
+    const item = step({ level: level.level, start: 0 }, `level-${level.level}`, `level ${level.level}`);
+    levels.push(item);
+    $("levels").append(item.li);
+    finish(item, level.accepted ? "done" : "rolled back", level.seconds);
+  }
+  $("levels-empty").hidden = report.levels.length > 0;
+  if (!report.levels.length) $("levels-empty").textContent = "No mirror level was tried.";
+}
+
+async function followLive() {
+  stream = new AbortController();
+  const how = await followEvents(jobId, onEvent, stream.signal);
+  if (how === "aborted") return;
+  const job = await api(jobPath);
+  showJob(job);
+  await showResults(job);
+}
+
+async function load() {
+  let job;
+  try {
+    job = await api(jobPath);
+  } catch (err) {
+    if (err instanceof AuthError) askKey("This server asks for an API key.");
+    else if (err instanceof ApiError && err.status === 404) {
+      $("job-status").textContent = `There is no job ${jobId} (or it belongs to another API key).`;
+    } else $("job-status").textContent = `Could not load the job: ${err.message}`;
+    return;
+  }
+  $("job-status").textContent = "";
+  showJob(job);
+  if (!TERMINAL.has(job.state)) {
+    followLive().catch((err) => {
+      if (err instanceof AuthError) askKey("This server asks for an API key.");
+    });
+  } else if (job.state === "succeeded") {
+    try {
+      showSecondsAsStages(job, await api(`${jobPath}/report`));
+    } catch {
+      // the report is shown (or its error) by showResults
+    }
+    await showResults(job);
+  }
+}
+
+$("cancel").addEventListener("click", async () => {
+  const button = $("cancel");
+  button.disabled = true;
+  try {
+    const job = await api(`${jobPath}:cancel`, { method: "POST" });
+    $("message").textContent = job.state === "cancelled" ? "Cancelled." : "Cancelling\u2026";
+  } catch (err) {
+    $("job-status").textContent = `Could not cancel: ${err.message}`;
+  } finally {
+    button.disabled = false;
+  }
+});
+
+load();

@@ -1,0 +1,237 @@
+"""The dashboard in headless Chromium against the real stack (redis-server, API, CPU worker): submit a scene through
+the form, watch its progress live, open its page and check that its charts and pictures load.
+
+Chromium is Debian's (``apt-get install chromium``), driven by Playwright without any browser download. The tests
+that need it skip only when it is not installed or does not start. Screenshots are left in the test's tmp dir."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Error as PlaywrightError
+
+from service.dashboard.routes import CSP, MEDIA_TYPES, STATIC, router
+from service.errors import install_handlers
+from tests.integration.conftest import KEY_A, TINY, client_for
+
+pytestmark = pytest.mark.integration
+
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+PAGES = {"index.html", "job.html"}
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    if path is None:
+        pytest.skip("Chromium is not installed (apt-get install chromium)")
+    with sync_playwright() as playwright:
+        try:
+            chromium = playwright.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
+        except PlaywrightError as exc:
+            pytest.skip(f"Chromium did not start: {exc.message.splitlines()[0]}")
+        yield chromium
+        chromium.close()
+
+
+class Watched:
+    """A page whose requests to other origins are refused and recorded, with its script errors."""
+
+    def __init__(self, browser: Browser, origin: str) -> None:
+        self.context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+        self.foreign: list[str] = []
+        self.errors: list[str] = []
+
+        def gate(route, request) -> None:  # noqa: ANN001 - playwright Route, Request
+            if request.url.startswith(origin + "/"):
+                route.continue_()
+            else:
+                self.foreign.append(request.url)
+                route.abort()
+
+        self.context.route("**/*", gate)
+        self.page: Page = self.context.new_page()
+        self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
+        self.page.on("console", self._console)
+
+    def _console(self, message) -> None:  # noqa: ANN001 - playwright ConsoleMessage
+        # Chromium logs every 4xx; a 401 is how the dashboard learns that the server wants a key.
+        if message.type == "error" and "status of 401" not in message.text:
+            self.errors.append(message.text)
+
+
+_RECORD_PROGRESS = """() => {
+  window.__progress = [];
+  const record = (bar) => window.__progress.push([bar.dataset.jobId, bar.hasAttribute("value") ? bar.value : null]);
+  new MutationObserver((mutations) => {
+    for (const m of mutations) {
+      if (m.type === "attributes") record(m.target);
+      else for (const node of m.addedNodes) node.querySelectorAll?.("progress").forEach(record);
+    }
+  }).observe(document.querySelector("#jobs tbody"),
+             {subtree: true, childList: true, attributes: true, attributeFilter: ["value"]});
+  window.__sameDocument = true;
+}"""
+
+_IMAGES_LOADED = """(minimum) => {
+  const images = [...document.querySelectorAll("figure img")];
+  return images.length >= minimum && images.every((img) => img.complete && img.naturalWidth > 0);
+}"""
+
+
+def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Path, tmp_path: Path) -> None:  # noqa: ANN001
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    page.goto(f"{stack.api_url}/")
+
+    # The server has API keys: the dashboard asks for one before it lists anything.
+    page.locator("#key-panel").wait_for(state="visible", timeout=10_000)
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    page.locator("#page-info").filter(has_text="of").wait_for(timeout=10_000)
+
+    page.evaluate(_RECORD_PROGRESS)
+    page.set_input_files("#scene", scene_path)
+    page.select_option("#preset", "small")
+    page.select_option("#device", "cpu")
+    page.get_by_text("Advanced settings").click()
+    for name, value in TINY.items():
+        if name != "device":
+            page.fill(f"#{name}", str(value))
+    page.get_by_role("button", name="Submit").click()
+
+    link = page.locator("#submit-status a")
+    link.wait_for(timeout=20_000)
+    job_id = link.get_attribute("href").rsplit("/", 1)[-1]
+    row = page.locator(f'tr[data-job-id="{job_id}"]')
+    row.wait_for(timeout=10_000)
+    page.locator(f'tr[data-job-id="{job_id}"][data-state="succeeded"]').wait_for(timeout=90_000)
+
+    assert page.evaluate("window.__sameDocument") is True, "the list reloaded"
+    values = [v for jid, v in page.evaluate("window.__progress") if jid == job_id and v is not None]
+    assert values == sorted(values), values
+    assert values[-1] == 1.0 and len(set(values)) >= 3 and any(0 < v < 1 for v in values), values
+
+    with client_for(stack, KEY_A) as api:
+        job = api.get(f"/v1/jobs/{job_id}").json()
+        report = api.get(f"/v1/jobs/{job_id}/report").json()
+        archive = api.get(f"/v1/jobs/{job_id}/result").content
+    assert job["params"]["iterations"] == TINY["iterations"] and job["params"]["preset"] == "small"
+    assert row.locator("td").nth(5).inner_text() == f"{job['metrics']['ratio_to_ply']:.2f}\u00d7"
+    assert row.locator(".pct").inner_text() == "100%"
+    page.screenshot(path=tmp_path / "jobs.png", full_page=True)
+
+    row.locator("a").click()
+    page.wait_for_url(f"{stack.api_url}/jobs/{job_id}")
+    page.locator("#metrics-section").wait_for(state="visible", timeout=10_000)
+    page.wait_for_function(_IMAGES_LOADED, arg=4, timeout=30_000)
+    sizes = dict(page.eval_on_selector_all("figure img", "els => els.map((e) => [e.dataset.name, e.naturalWidth])"))
+    assert {"rate_distortion", "speed_accuracy", "mirrors", "compare_0"} <= set(sizes), sizes
+    assert all(width > 0 for width in sizes.values()), sizes
+    charts = {a[len("charts/") : -len(".png")] for a in job["artifacts"] if a.startswith("charts/")}
+    assert set(sizes) == charts
+
+    metrics = page.locator("#metrics").inner_text()
+    assert f"{report['ratio_to_baseline']:.2f}\u00d7" in metrics
+    assert len(page.locator("#mirrors tbody tr").all()) == len(report["levels"])
+    hrefs = page.eval_on_selector_all("#downloads a", "els => els.map((e) => e.getAttribute('href'))")
+    assert {f"/v1/jobs/{job_id}/result", f"/v1/jobs/{job_id}/result.ply", f"/v1/jobs/{job_id}/report"} <= set(hrefs)
+    # Downloads go through fetch() with the API key, which a plain link could not send.
+    with page.expect_download() as download:
+        page.get_by_role("link", name="Compressed archive (.symgs)").click()
+    assert Path(download.value.path()).read_bytes() == archive
+    assert page.locator("#cancel").is_hidden()
+    page.screenshot(path=tmp_path / "job.png", full_page=True)
+
+    assert watched.foreign == [], "the dashboard asked another origin"
+    assert watched.errors == [], watched.errors
+    watched.context.close()
+
+
+_LEVEL_MOVING = """() => {
+  const bar = document.querySelector('#levels li[data-name="level-0"] progress');
+  return bar !== null && bar.hasAttribute("value") && bar.value > 0 && bar.value < 1;
+}"""
+
+
+def test_job_page_cancels_a_running_job(stack, browser: Browser, scene_path: Path, tmp_path: Path) -> None:  # noqa: ANN001
+    from tests.integration.conftest import submit
+
+    slow = {**TINY, "iterations": 2000, "max_levels": 2}
+    with client_for(stack, KEY_A) as api:
+        job_id = submit(api, scene_path, slow).json()["id"]
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    page.goto(f"{stack.api_url}/jobs/{job_id}")
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    # Stages, then the level being tuned, appear and move live.
+    page.wait_for_function(_LEVEL_MOVING, timeout=60_000)
+    assert page.locator("#stages li").count() >= 2 and page.locator("#state").inner_text() == "running"
+    page.screenshot(path=tmp_path / "running.png", full_page=True)
+    page.get_by_role("button", name="Cancel job").click()
+    page.locator("#state").filter(has_text="cancelled").wait_for(timeout=30_000)
+    assert page.locator("#cancel").is_hidden()
+    page.screenshot(path=tmp_path / "cancelled.png", full_page=True)
+    assert watched.foreign == [] and watched.errors == [], (watched.foreign, watched.errors)
+    watched.context.close()
+
+
+@pytest.fixture(scope="module")
+def pages() -> Iterator[TestClient]:
+    app = FastAPI()
+    install_handlers(app)
+    app.include_router(router)
+    with TestClient(app) as client:
+        yield client
+
+
+def test_pages_and_files_are_served_with_a_same_origin_policy(pages: TestClient) -> None:
+    for path in ("/", "/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596"):
+        response = pages.get(path)
+        assert response.status_code == 200 and response.headers["content-type"].startswith("text/html")
+        assert response.headers["content-security-policy"] == CSP
+    assert "job.js" in pages.get("/jobs/x").text and "jobs.js" in pages.get("/").text
+    for name, media_type in MEDIA_TYPES.items():
+        response = pages.get(f"/static/{name}")
+        assert response.status_code == 200, name
+        assert response.headers["content-type"].split(";")[0] == media_type
+        assert response.content == (STATIC / name).read_bytes()
+    # Every file of the folder is reachable, and nothing else is.
+    assert {p.name for p in STATIC.iterdir()} == set(MEDIA_TYPES) | PAGES
+    for name in ("routes.py", "..%2Froutes.py", "index.html", ".hidden"):
+        assert pages.get(f"/static/{name}").status_code == 404, name
+    assert pages.get("/jobs/a..b").status_code == 422
+
+
+_EXTERNAL = re.compile(
+    r"""(?:src|href|action)\s*=\s*["']?\s*(?:[a-z]+:)?//|url\(\s*["']?\s*(?:[a-z]+:)?//|@import|https?://(?!www\.w3\.org/2000/svg")"""
+)
+
+
+def test_no_file_refers_to_another_origin() -> None:
+    for path in STATIC.iterdir():
+        text = path.read_text()
+        assert not _EXTERNAL.search(text), f"{path.name}: {_EXTERNAL.search(text).group(0)!r}"
+
+
+def test_dashboard_is_part_of_the_running_api(stack) -> None:  # noqa: ANN001
+    response = httpx.get(f"{stack.api_url}/", timeout=10)
+    assert response.status_code == 200 and "Compression jobs" in response.text
+    assert "/" not in httpx.get(f"{stack.api_url}/openapi.json", timeout=10).json()["paths"]
