@@ -22,6 +22,10 @@ import redis
 
 from worker.store import JobStore
 
+# The `symgs` command as this interpreter runs it (works without the console script on PATH; unlike `-m service.cli`
+# it keeps one `service.cli` module, whose CliError the handlers raise).
+SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -133,7 +137,7 @@ class LocalStack:
 
     def start_api(self, timeout: float = 30) -> None:
         port = free_port()
-        argv = [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
+        argv = [*SYMGS, "serve", "--host", "127.0.0.1", "--port", str(port)]
         child = _spawn("api", argv, self.child_env(), self.root)
         self.children.append(child)
         self.api_url = f"http://127.0.0.1:{port}"
@@ -143,7 +147,7 @@ class LocalStack:
         """Start a worker and wait for its first heartbeat."""
         store = JobStore.from_url(self.redis_url)
         before = store.live_workers(mode, 3600)
-        argv = [sys.executable, "-m", "service.cli", "worker", "--mode", mode, "--loglevel", "INFO"]
+        argv = [*SYMGS, "worker", "--mode", mode, "--loglevel", "INFO"]
         child = _spawn(f"worker-{mode}-{len(self.workers)}", argv, self.child_env(), self.root)
         self.children.append(child)
         self.workers.append(child)
