@@ -20,17 +20,17 @@ def render_cpu(
     # Depth rides along as a fourth channel so the expected depth is composited (and differentiated) with colour.
     feats = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)
     bg = torch.cat([background, background.new_zeros(1)])
-    binning = bin_gaussians(proj.means2d, proj.radii, camera.width, camera.height, tile_size)
+    binning = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size)
     out, alpha = composite(proj.means2d, proj.conics, feats, proj.opacity, bg, binning)
-    radii = torch.zeros(len(scene), dtype=torch.int32, device=scene.device)
-    radii[proj.index] = proj.radii.to(torch.int32)
+    visible = torch.from_numpy(binning.visible).to(scene.device)
+    radii = torch.where(visible, proj.radii, torch.zeros_like(proj.radii)).to(torch.int32)
     return RenderResult(
         image=out[..., :3].clamp(0.0, 1.0),
         alpha=alpha,
         depth=out[..., 3] / alpha.clamp_min(1e-10),
         aux={
             "radii": radii,
-            "num_visible": int(proj.index.shape[0]),
+            "num_visible": int(visible.sum()),
             "num_intersections": binning.num_intersections,
             "backend": "cpu",
         },

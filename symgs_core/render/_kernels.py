@@ -1,15 +1,17 @@
 """Compiled CPU kernels of the tile rasterizer: binning, front-to-back compositing and its hand-written backward.
 
-Inputs are depth-sorted, already projected Gaussians (float64, C-contiguous):
-  means2d  [M, 2]  pixel coordinates (pixel centres at +0.5)
-  conics   [M, 3]  inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + c dy^2) - b dx dy
-  feats    [M, D]  per-Gaussian channels to composite (RGB, plus depth when asked)
-  opacity  [M]     activated opacity
-  rects    [M, 4]  int32 (x0, x1, y0, y1): the pixels whose centre lies inside the 3-sigma box, clipped to the image
+Inputs are projected Gaussians (float64, C-contiguous), N of them:
+  means2d  [N, 2]  pixel coordinates (pixel centres at +0.5)
+  conics   [N, 3]  inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + c dy^2) - b dx dy
+  feats    [N, D]  per-Gaussian channels to composite (RGB, plus depth when asked)
+  opacity  [N]     activated opacity
+  rects    [N, 4]  int32 (x0, x1, y0, y1): the pixels whose centre lies inside the 3-sigma box, clipped to the image
 
 A pixel takes a Gaussian only inside its rect, so binning by rect makes the image independent of the tile size.
-Gradients are written per (tile, Gaussian) pair and summed afterwards in a fixed order, so the backward pass has no
-races and gives the same bits for any thread count.
+Each tile first copies its Gaussians into contiguous local arrays and splits itself into 4x4-pixel blocks with their
+own lists, so a pixel walks only the Gaussians whose rect can reach it; a cheap bound on the exponent skips most
+exp() calls that could not reach alpha 1/255. Gradients are written per (tile, Gaussian) pair and summed afterwards in
+a fixed order, so the backward pass has no races and gives the same bits for any thread count.
 
 Compiled on first use; ``cache=True`` keeps the machine code between processes. Where numba finds no writable cache
 location (read-only install and home), the kernels are compiled without a cache instead of failing at import.
@@ -27,6 +29,11 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 # Per-intersection gradient row: d/du, d/dv, d/da, d/db, d/dc, d/dopacity, then d/dfeats.
 GEOM_GRADS = 6
+# Side of the pixel blocks a tile is split into.
+BLOCK = 4
+# exp(power) is skipped when power < log(ALPHA_MIN / opacity) - CUT_MARGIN: the margin is far above rounding error,
+# so the skip never changes a decision that the exact test would make.
+CUT_MARGIN = 1e-6
 
 
 def _compile(parallel: bool):
@@ -40,14 +47,19 @@ def _compile(parallel: bool):
 
 
 @_compile(parallel=False)
-def bin_gaussians(means2d, radii, width, height, tile_size):
-    """Pixel rects [M, 4] int32, tile offsets [T + 1] int64 and per-tile Gaussian ids [I] int32 (depth order kept)."""
-    m = means2d.shape[0]
+def bin_gaussians(means2d, radii, depths, width, height, tile_size):
+    """Pixel rects [N, 4] int32 (empty: x0 > x1), tile offsets [T + 1] int64 and per-tile Gaussian ids [I] int32.
+
+    Gaussians with radius 0 or no pixel centre inside their box are left out; the others enter each tile's list
+    front to back (stable sort by ``depths``).
+    """
+    n = means2d.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    rects = np.empty((m, 4), dtype=np.int32)
-    counts = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for g in range(m):
+    rects = np.empty((n, 4), dtype=np.int32)
+    visible = np.empty(n, dtype=np.int64)
+    count = 0
+    for g in range(n):
         r = radii[g]
         u = means2d[g, 0]
         v = means2d[g, 1]
@@ -58,28 +70,95 @@ def bin_gaussians(means2d, radii, width, height, tile_size):
         y1 = min(math.floor(v + r - 0.5), height - 1)
         if r <= 0 or x0 > x1 or y0 > y1:
             x0, x1, y0, y1 = 1, 0, 1, 0
+        else:
+            visible[count] = g
+            count += 1
         rects[g, 0] = x0
         rects[g, 1] = x1
         rects[g, 2] = y0
         rects[g, 3] = y1
-        if x0 > x1:
-            continue
-        for ty in range(y0 // tile_size, y1 // tile_size + 1):
-            for tx in range(x0 // tile_size, x1 // tile_size + 1):
+    visible = visible[:count]
+    front_to_back = visible[np.argsort(depths[visible], kind="mergesort")]
+    counts = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
+    for g in front_to_back:
+        for ty in range(rects[g, 2] // tile_size, rects[g, 3] // tile_size + 1):
+            for tx in range(rects[g, 0] // tile_size, rects[g, 1] // tile_size + 1):
                 counts[ty * tiles_x + tx + 1] += 1
     offsets = np.cumsum(counts)
     ids = np.empty(offsets[-1], dtype=np.int32)
     cursor = offsets[:-1].copy()
-    for g in range(m):
-        x0, x1, y0, y1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
-        if x0 > x1:
-            continue
-        for ty in range(y0 // tile_size, y1 // tile_size + 1):
-            for tx in range(x0 // tile_size, x1 // tile_size + 1):
+    for g in front_to_back:
+        for ty in range(rects[g, 2] // tile_size, rects[g, 3] // tile_size + 1):
+            for tx in range(rects[g, 0] // tile_size, rects[g, 1] // tile_size + 1):
                 t = ty * tiles_x + tx
                 ids[cursor[t]] = g
                 cursor[t] += 1
     return rects, offsets, ids
+
+
+@_compile(parallel=False)
+def balance_tiles(work, threads):
+    """Tile order [T] int64 for ``threads`` equal contiguous chunks (numba's static split of a parallel loop) with
+    about equal ``work`` [T] each: heaviest tile first into the lightest chunk that still has room."""
+    n = work.shape[0]
+    size = np.full(threads, n // threads, dtype=np.int64)
+    size[: n % threads] += 1
+    start = np.zeros(threads, dtype=np.int64)
+    start[1:] = np.cumsum(size)[:-1]
+    fill = np.zeros(threads, dtype=np.int64)
+    load = np.zeros(threads)
+    order = np.empty(n, dtype=np.int64)
+    for tile in np.argsort(-work, kind="mergesort"):
+        best = -1
+        for b in range(threads):
+            if fill[b] < size[b] and (best < 0 or load[b] < load[best]):
+                best = b
+        order[start[best] + fill[best]] = tile
+        fill[best] += 1
+        load[best] += work[tile]
+    return order
+
+
+@_compile(parallel=False)
+def _gather(ids, start, n, means2d, conics, opacity, feats, rects):
+    """A tile's Gaussians as contiguous arrays: geometry [n, 7] (u, v, a, b, c, opacity, exponent cut), rects, feats."""
+    geo = np.empty((n, 7))
+    box = np.empty((n, 4), dtype=np.int32)
+    col = np.empty((n, feats.shape[1]))
+    for j in range(n):
+        g = ids[start + j]
+        geo[j, 0] = means2d[g, 0]
+        geo[j, 1] = means2d[g, 1]
+        geo[j, 2] = conics[g, 0]
+        geo[j, 3] = conics[g, 1]
+        geo[j, 4] = conics[g, 2]
+        geo[j, 5] = opacity[g]
+        geo[j, 6] = math.log(ALPHA_MIN / opacity[g]) - CUT_MARGIN if opacity[g] > 0.0 else 1.0
+        box[j, :] = rects[g, :]
+        col[j, :] = feats[g, :]
+    return geo, box, col
+
+
+@_compile(parallel=False)
+def _blocks(box, x0, y0, x_end, y_end):
+    """Per BLOCK x BLOCK pixel block of the tile [x0, x_end) x [y0, y_end): count and front-to-back local indices of
+    the Gaussians whose rect overlaps it."""
+    n = box.shape[0]
+    nbx = (x_end - x0 + BLOCK - 1) // BLOCK
+    nby = (y_end - y0 + BLOCK - 1) // BLOCK
+    counts = np.zeros(nbx * nby, dtype=np.int64)
+    lists = np.empty((nbx * nby, n), dtype=np.int32)
+    for j in range(n):
+        bx0 = (max(box[j, 0], x0) - x0) // BLOCK
+        bx1 = (min(box[j, 1], x_end - 1) - x0) // BLOCK
+        by0 = (max(box[j, 2], y0) - y0) // BLOCK
+        by1 = (min(box[j, 3], y_end - 1) - y0) // BLOCK
+        for by in range(by0, by1 + 1):
+            for bx in range(bx0, bx1 + 1):
+                q = by * nbx + bx
+                lists[q, counts[q]] = j
+                counts[q] += 1
+    return nbx, counts, lists
 
 
 @_compile(parallel=True)
@@ -93,37 +172,45 @@ def composite_forward(
     t_final = np.empty((height, width))
     for k in prange(order.shape[0]):
         tile = order[k]
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
+        y0 = (tile // tiles_x) * tile_size
+        x0 = (tile % tiles_x) * tile_size
+        y_end = min(y0 + tile_size, height)
+        x_end = min(x0 + tile_size, width)
         start = offsets[tile]
-        end = offsets[tile + 1]
+        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
+        nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
         acc = np.empty(d)
-        for py in range(ty * tile_size, min((ty + 1) * tile_size, height)):
-            cy = py + 0.5
-            for px in range(tx * tile_size, min((tx + 1) * tile_size, width)):
-                cx = px + 0.5
-                acc[:] = 0.0
-                t = 1.0
-                for e in range(start, end):
-                    g = ids[e]
-                    if px < rects[g, 0] or px > rects[g, 1] or py < rects[g, 2] or py > rects[g, 3]:
-                        continue
-                    dx = means2d[g, 0] - cx
-                    dy = means2d[g, 1] - cy
-                    power = -0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) - conics[g, 1] * dx * dy
-                    alpha = min(ALPHA_MAX, opacity[g] * math.exp(power))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    t_next = t * (1.0 - alpha)
-                    if t_next < T_MIN:
-                        break
-                    w = alpha * t
+        for q in range(counts.shape[0]):
+            bx0 = x0 + (q % nbx) * BLOCK
+            by0 = y0 + (q // nbx) * BLOCK
+            for py in range(by0, min(by0 + BLOCK, y_end)):
+                cy = py + 0.5
+                for px in range(bx0, min(bx0 + BLOCK, x_end)):
+                    cx = px + 0.5
+                    acc[:] = 0.0
+                    t = 1.0
+                    for i in range(counts[q]):
+                        j = lists[q, i]
+                        if px < box[j, 0] or px > box[j, 1] or py < box[j, 2] or py > box[j, 3]:
+                            continue
+                        dx = geo[j, 0] - cx
+                        dy = geo[j, 1] - cy
+                        power = -0.5 * (geo[j, 2] * dx * dx + geo[j, 4] * dy * dy) - geo[j, 3] * dx * dy
+                        if power < geo[j, 6]:
+                            continue
+                        alpha = min(ALPHA_MAX, geo[j, 5] * math.exp(power))
+                        if alpha < ALPHA_MIN:
+                            continue
+                        t_next = t * (1.0 - alpha)
+                        if t_next < T_MIN:
+                            break
+                        w = alpha * t
+                        for c in range(d):
+                            acc[c] += w * col[j, c]
+                        t = t_next
                     for c in range(d):
-                        acc[c] += w * feats[g, c]
-                    t = t_next
-                for c in range(d):
-                    out[py, px, c] = acc[c] + t * background[c]
-                t_final[py, px] = t
+                        out[py, px, c] = acc[c] + t * background[c]
+                    t_final[py, px] = t
     return out, t_final
 
 
@@ -142,62 +229,72 @@ def composite_backward(
     grads = np.zeros((ids.shape[0], GEOM_GRADS + d))
     for k in prange(order.shape[0]):
         tile = order[k]
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
+        y0 = (tile // tiles_x) * tile_size
+        x0 = (tile % tiles_x) * tile_size
+        y_end = min(y0 + tile_size, height)
+        x_end = min(x0 + tile_size, width)
         start = offsets[tile]
-        end = offsets[tile + 1]
-        for py in range(ty * tile_size, min((ty + 1) * tile_size, height)):
-            cy = py + 0.5
-            for px in range(tx * tile_size, min((tx + 1) * tile_size, width)):
-                cx = px + 0.5
-                g_t = grad_t_final[py, px]
-                total = g_t * t_final[py, px]
-                for c in range(d):
-                    total += grad_out[py, px, c] * out[py, px, c]
-                done = 0.0
-                t = 1.0
-                for e in range(start, end):
-                    g = ids[e]
-                    if px < rects[g, 0] or px > rects[g, 1] or py < rects[g, 2] or py > rects[g, 3]:
-                        continue
-                    dx = means2d[g, 0] - cx
-                    dy = means2d[g, 1] - cy
-                    a = conics[g, 0]
-                    b = conics[g, 1]
-                    cc = conics[g, 2]
-                    power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
-                    gauss = math.exp(power)
-                    raw = opacity[g] * gauss
-                    alpha = min(ALPHA_MAX, raw)
-                    if alpha < ALPHA_MIN:
-                        continue
-                    t_next = t * (1.0 - alpha)
-                    if t_next < T_MIN:
-                        break
-                    w = alpha * t
-                    gf = 0.0
+        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
+        nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
+        g_pix = np.empty(d)
+        for q in range(counts.shape[0]):
+            bx0 = x0 + (q % nbx) * BLOCK
+            by0 = y0 + (q // nbx) * BLOCK
+            for py in range(by0, min(by0 + BLOCK, y_end)):
+                cy = py + 0.5
+                for px in range(bx0, min(bx0 + BLOCK, x_end)):
+                    cx = px + 0.5
+                    total = grad_t_final[py, px] * t_final[py, px]
                     for c in range(d):
-                        gc = grad_out[py, px, c]
-                        gf += gc * feats[g, c]
-                        grads[e, GEOM_GRADS + c] += gc * w
-                    done += w * gf
-                    if raw <= ALPHA_MAX:
-                        d_alpha = t * gf - (total - done) / (1.0 - alpha)
-                        grads[e, 5] += gauss * d_alpha
-                        d_power = raw * d_alpha
-                        grads[e, 0] -= d_power * (a * dx + b * dy)
-                        grads[e, 1] -= d_power * (cc * dy + b * dx)
-                        grads[e, 2] -= 0.5 * d_power * dx * dx
-                        grads[e, 3] -= d_power * dx * dy
-                        grads[e, 4] -= 0.5 * d_power * dy * dy
-                    t = t_next
+                        g_pix[c] = grad_out[py, px, c]
+                        total += g_pix[c] * out[py, px, c]
+                    done = 0.0
+                    t = 1.0
+                    for i in range(counts[q]):
+                        j = lists[q, i]
+                        if px < box[j, 0] or px > box[j, 1] or py < box[j, 2] or py > box[j, 3]:
+                            continue
+                        dx = geo[j, 0] - cx
+                        dy = geo[j, 1] - cy
+                        a = geo[j, 2]
+                        b = geo[j, 3]
+                        cc = geo[j, 4]
+                        power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
+                        if power < geo[j, 6]:
+                            continue
+                        gauss = math.exp(power)
+                        raw = geo[j, 5] * gauss
+                        alpha = min(ALPHA_MAX, raw)
+                        if alpha < ALPHA_MIN:
+                            continue
+                        t_next = t * (1.0 - alpha)
+                        if t_next < T_MIN:
+                            break
+                        e = start + j
+                        w = alpha * t
+                        gf = 0.0
+                        for c in range(d):
+                            gf += g_pix[c] * col[j, c]
+                            grads[e, GEOM_GRADS + c] += g_pix[c] * w
+                        done += w * gf
+                        # Where alpha is clamped at ALPHA_MAX it no longer depends on opacity or geometry.
+                        if raw <= ALPHA_MAX:
+                            d_alpha = t * gf - (total - done) / (1.0 - alpha)
+                            grads[e, 5] += gauss * d_alpha
+                            d_power = raw * d_alpha
+                            grads[e, 0] -= d_power * (a * dx + b * dy)
+                            grads[e, 1] -= d_power * (cc * dy + b * dx)
+                            grads[e, 2] -= 0.5 * d_power * dx * dx
+                            grads[e, 3] -= d_power * dx * dy
+                            grads[e, 4] -= 0.5 * d_power * dy * dy
+                        t = t_next
     return grads
 
 
 @_compile(parallel=False)
-def sum_by_gaussian(rows, ids, m):
-    """Per-Gaussian sums [M, C] of per-intersection rows [I, C], added in the order of ``ids``."""
-    total = np.zeros((m, rows.shape[1]))
+def sum_by_gaussian(rows, ids, n):
+    """Per-Gaussian sums [n, C] of per-intersection rows [I, C], added in the order of ``ids``."""
+    total = np.zeros((n, rows.shape[1]))
     for e in range(ids.shape[0]):
         g = ids[e]
         for c in range(rows.shape[1]):

@@ -1,4 +1,9 @@
-"""EWA projection of 3D Gaussians onto a pinhole camera, in plain PyTorch so autograd differentiates it."""
+"""EWA projection of 3D Gaussians onto a pinhole camera, in plain PyTorch so autograd differentiates it.
+
+Every Gaussian is projected (no gathers: their backward is a slow scatter on the CPU); those behind the near plane get
+radius 0 and finite placeholder values, and the rasterizer skips them along with those that land off-screen. The
+2x3 and 3x3 products are written out elementwise, which is several times faster than batched 3x3 matmuls.
+"""
 
 from __future__ import annotations
 
@@ -21,18 +26,16 @@ FOV_CLAMP = 1.3
 
 @dataclass
 class Projection:
-    """The Gaussians that may touch the image, front to back.
+    """Every scene Gaussian as seen by the camera.
 
-    index    [M]     their rows in the scene (int64)
-    means2d  [M, 2]  pixel coordinates of the centres (pixel centres at +0.5)
-    conics   [M, 3]  inverse 2D covariance (a, b, c)
-    depths   [M]     camera-space z
-    radii    [M]     3-sigma radius in pixels (whole numbers, no gradient)
-    colors   [M, 3]  SH colour towards the camera
-    opacity  [M]     activated opacity
+    means2d  [N, 2]  pixel coordinates of the centres (pixel centres at +0.5)
+    conics   [N, 3]  inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + c dy^2) - b dx dy
+    depths   [N]     camera-space z
+    radii    [N]     3-sigma radius in pixels (whole numbers, no gradient); 0 behind the near plane
+    colors   [N, 3]  SH colour towards the camera
+    opacity  [N]     activated opacity
     """
 
-    index: Tensor
     means2d: Tensor
     conics: Tensor
     depths: Tensor
@@ -54,69 +57,47 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ).reshape(-1, 3, 3)
 
 
-def covariance3d(quats: Tensor, log_scales: Tensor) -> Tensor:
-    """World covariances [N, 3, 3] = R S^2 R^T."""
-    m = quat_to_rotmat(quats) * torch.exp(log_scales)[:, None, :]
-    return m @ m.transpose(1, 2)
-
-
 def project(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
-    """Project ``scene`` into ``camera``; Gaussians behind the near plane or entirely off-screen are dropped."""
+    """Project every Gaussian of ``scene`` into ``camera`` (EWA splatting with 3DGS's conventions)."""
     dtype, device = scene.means.dtype, scene.means.device
     rot = camera.R.to(device=device, dtype=dtype)
-    trans = camera.t.to(device=device, dtype=dtype)
-    width, height = camera.width, camera.height
-
-    depth_all = scene.means.detach() @ rot[2] + trans[2]
-    index = torch.nonzero(depth_all > NEAR_PLANE).squeeze(1)
-    means = scene.means[index]
-    p = means @ rot.T + trans  # [F, 3]
+    p = scene.means @ rot.T + camera.t.to(device=device, dtype=dtype)  # [N, 3] camera space
     x, y, z = p.unbind(-1)
+    in_front = z.detach() > NEAR_PLANE
+    z = torch.where(in_front, z, torch.ones_like(z))  # placeholder keeps culled rows finite in both passes
 
-    lim_x = FOV_CLAMP * 0.5 * width / camera.fx
-    lim_y = FOV_CLAMP * 0.5 * height / camera.fy
-    tx = z * torch.clamp(x / z, -lim_x, lim_x)
-    ty = z * torch.clamp(y / z, -lim_y, lim_y)
-    zero = torch.zeros_like(z)
-    jac = torch.stack(
-        [camera.fx / z, zero, -camera.fx * tx / (z * z), zero, camera.fy / z, -camera.fy * ty / (z * z)], dim=-1
-    ).reshape(-1, 2, 3)
-    jw = jac @ rot  # [F, 2, 3]
-    cov2d = jw @ covariance3d(scene.quats[index], scene.scales[index]) @ jw.transpose(1, 2)
-    a = cov2d[:, 0, 0] + LOW_PASS
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + LOW_PASS
+    lim_x = FOV_CLAMP * 0.5 * camera.width / camera.fx
+    lim_y = FOV_CLAMP * 0.5 * camera.height / camera.fy
+    j00 = camera.fx / z
+    j02 = -camera.fx * torch.clamp(x / z, -lim_x, lim_x) / z
+    j11 = camera.fy / z
+    j12 = -camera.fy * torch.clamp(y / z, -lim_y, lim_y) / z
+    # Rows of J R_cam [N, 3], then of (J R_cam)(R_g S) [N, 3]: cov2d = P P^T.
+    jw0 = j00[:, None] * rot[0] + j02[:, None] * rot[2]
+    jw1 = j11[:, None] * rot[1] + j12[:, None] * rot[2]
+    m = quat_to_rotmat(scene.quats) * torch.exp(scene.scales)[:, None, :]  # R_g S [N, 3, 3]
+    p0 = (jw0[:, :, None] * m).sum(1)
+    p1 = (jw1[:, :, None] * m).sum(1)
+    a = (p0 * p0).sum(-1) + LOW_PASS
+    b = (p0 * p1).sum(-1)
+    c = (p1 * p1).sum(-1) + LOW_PASS
     det = a * c - b * b
     conics = torch.stack([c / det, -b / det, a / det], dim=-1)
     means2d = torch.stack([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], dim=-1)
 
     with torch.no_grad():
         mid = 0.5 * (a + c)
-        lam = mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))
-        radii = torch.ceil(3.0 * torch.sqrt(lam))
-        u, v = means2d.unbind(-1)
-        # Keep a Gaussian when some pixel centre j + 0.5 lies within its radius, in both axes.
-        on_screen = (
-            (torch.ceil(u - radii - 0.5) <= width - 1)
-            & (torch.floor(u + radii - 0.5) >= 0)
-            & (torch.ceil(v - radii - 0.5) <= height - 1)
-            & (torch.floor(v + radii - 0.5) >= 0)
-            & (det > 0)
-        )
-        keep = torch.nonzero(on_screen).squeeze(1)
-        keep = keep[torch.argsort(z.detach()[keep], stable=True)]
+        radii = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))))
+        radii = torch.where(in_front & (det > 0), radii, torch.zeros_like(radii))
 
-    means_kept = means[keep]
-    dirs = means_kept - camera.center.to(device=device, dtype=dtype)
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    rows = index[keep]
-    coeffs = torch.cat([scene.sh_dc[rows, None, :], scene.sh_rest[rows, : num_coeffs(sh_degree) - 1]], dim=1)
+    dirs = scene.means - camera.center.to(device=device, dtype=dtype)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    coeffs = torch.cat([scene.sh_dc[:, None, :], scene.sh_rest[:, : num_coeffs(sh_degree) - 1]], dim=1)
     return Projection(
-        index=rows,
-        means2d=means2d[keep],
-        conics=conics[keep],
-        depths=z[keep],
-        radii=radii[keep],
+        means2d=means2d,
+        conics=conics,
+        depths=z,
+        radii=radii,
         colors=sh_to_rgb(coeffs, dirs),
-        opacity=torch.sigmoid(scene.opacities[rows]),
+        opacity=torch.sigmoid(scene.opacities),
     )

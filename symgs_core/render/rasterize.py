@@ -12,19 +12,16 @@ from torch import Tensor
 from . import _kernels
 
 TILE_SIZE = 16
-# Tiles are handed out a few at a time, heaviest first, so a thread that drew the object's busy tiles does not
-# finish long after the others.
-_CHUNK = 2
 
 
 @dataclass(frozen=True)
 class Binning:
     """Which Gaussians each tile composites: ids[offsets[t]:offsets[t + 1]] for tile t, front to back."""
 
-    rects: np.ndarray  # [M, 4] int32 pixel rects (x0, x1, y0, y1)
+    rects: np.ndarray  # [N, 4] int32 pixel rects (x0, x1, y0, y1); x0 > x1 for Gaussians that touch no pixel
     offsets: np.ndarray  # [T + 1] int64
     ids: np.ndarray  # [I] int32
-    order: np.ndarray  # [T] int64 tiles, most intersections first
+    order: np.ndarray  # [T] int64 tiles, arranged so each thread's share holds about as many intersections
     width: int
     height: int
     tile_size: int
@@ -33,17 +30,28 @@ class Binning:
     def num_intersections(self) -> int:
         return int(self.ids.shape[0])
 
+    @property
+    def visible(self) -> np.ndarray:
+        """[N] bool: the Gaussians that touch at least one pixel centre."""
+        return self.rects[:, 0] <= self.rects[:, 1]
+
 
 def _np64(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
 
 
-def bin_gaussians(means2d: Tensor, radii: Tensor, width: int, height: int, tile_size: int = TILE_SIZE) -> Binning:
-    """Bin depth-sorted Gaussians (means2d [M, 2], radii [M]) into ``tile_size`` square tiles."""
+def bin_gaussians(
+    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = TILE_SIZE
+) -> Binning:
+    """Bin Gaussians (means2d [N, 2], radii [N], 0 = culled; depths [N]) front to back into square tiles."""
     if tile_size <= 0:
         raise ValueError(f"tile_size must be positive, got {tile_size}")
-    rects, offsets, ids = _kernels.bin_gaussians(_np64(means2d), _np64(radii), width, height, tile_size)
-    order = np.argsort(-np.diff(offsets), kind="stable")
+    rects, offsets, ids = _kernels.bin_gaussians(
+        _np64(means2d), _np64(radii), _np64(depths), width, height, tile_size
+    )
+    # numba hands each thread one contiguous share of a parallel loop; balance the shares, or the thread that drew
+    # the object's busy tiles finishes long after the others.
+    order = _kernels.balance_tiles(np.diff(offsets).astype(np.float64), numba.get_num_threads())
     return Binning(rects, offsets, ids, order, width, height, tile_size)
 
 
@@ -60,10 +68,9 @@ class _Composite(torch.autograd.Function):
     ):
         arrays = (_np64(means2d), _np64(conics), _np64(feats), _np64(opacity))
         b = binning
-        with numba.parallel_chunksize(_CHUNK):
-            out, t_final = _kernels.composite_forward(
-                *arrays, b.rects, b.offsets, b.ids, b.order, _np64(background), b.width, b.height, b.tile_size
-            )
+        out, t_final = _kernels.composite_forward(
+            *arrays, b.rects, b.offsets, b.ids, b.order, _np64(background), b.width, b.height, b.tile_size
+        )
         ctx.arrays = arrays
         ctx.binning = binning
         ctx.out = out
@@ -78,11 +85,10 @@ class _Composite(torch.autograd.Function):
         b: Binning = ctx.binning
         means2d, conics, feats, opacity = ctx.arrays
         g_out = _np64(grad_image)
-        with numba.parallel_chunksize(_CHUNK):
-            rows = _kernels.composite_backward(
-                means2d, conics, feats, opacity, b.rects, b.offsets, b.ids, b.order, b.width, b.height,
-                b.tile_size, ctx.out, ctx.t_final, g_out, -_np64(grad_alpha),
-            )
+        rows = _kernels.composite_backward(
+            means2d, conics, feats, opacity, b.rects, b.offsets, b.ids, b.order, b.width, b.height,
+            b.tile_size, ctx.out, ctx.t_final, g_out, -_np64(grad_alpha),
+        )
         total = _kernels.sum_by_gaussian(rows, b.ids, means2d.shape[0])
         dtype, device = grad_image.dtype, grad_image.device
         total_t = torch.from_numpy(total).to(device=device, dtype=dtype)
@@ -94,20 +100,20 @@ class _Composite(torch.autograd.Function):
 def composite(
     means2d: Tensor, conics: Tensor, feats: Tensor, opacity: Tensor, background: Tensor, binning: Binning
 ) -> tuple[Tensor, Tensor]:
-    """Front-to-back composite of depth-sorted Gaussians: channels [H, W, D] over ``background`` [D], alpha [H, W].
+    """Front-to-back composite of binned Gaussians: channels [H, W, D] over ``background`` [D], alpha [H, W].
 
-    means2d [M, 2], conics [M, 3], feats [M, D], opacity [M] (activated); differentiable in all of them and in
-    ``background``.
+    means2d [N, 2], conics [N, 3], feats [N, D], opacity [N] (activated); differentiable in all of them and in
+    ``background``. Gaussians left out by ``binning`` get zero gradients.
     """
-    m, d = feats.shape
+    n, d = feats.shape
     for name, t, shape in (
-        ("means2d", means2d, (m, 2)),
-        ("conics", conics, (m, 3)),
-        ("opacity", opacity, (m,)),
+        ("means2d", means2d, (n, 2)),
+        ("conics", conics, (n, 3)),
+        ("opacity", opacity, (n,)),
         ("background", background, (d,)),
     ):
         if tuple(t.shape) != shape:
             raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {shape}")
-    if binning.rects.shape[0] != m:
-        raise ValueError(f"binning covers {binning.rects.shape[0]} Gaussians, got {m}")
+    if binning.rects.shape[0] != n:
+        raise ValueError(f"binning covers {binning.rects.shape[0]} Gaussians, got {n}")
     return _Composite.apply(means2d, conics, feats, opacity, background, binning)

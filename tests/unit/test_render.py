@@ -233,7 +233,7 @@ def test_kernels_compile_without_a_writable_cache(tmp_path) -> None:  # noqa: AN
         import numpy as np
         import _kernels
         means = np.array([[4.0, 4.0]]); radii = np.array([3.0])
-        rects, offsets, ids = _kernels.bin_gaussians(means, radii, 8, 8, 4)
+        rects, offsets, ids = _kernels.bin_gaussians(means, radii, np.array([2.0]), 8, 8, 4)
         print(rects.tolist(), ids.tolist())
         """
     )
