@@ -10,7 +10,8 @@ import sys
 COMMAND_MODULES = [
     "service.cmd_scene",  # info, render
     "service.cmd_detect",  # detect
-    "service.cmd_codec",  # compress, decompress, evaluate, bench
+    "service.cmd_codec",  # compress, decompress, evaluate
+    "service.cmd_bench",  # bench
     "service.cmd_service",  # serve, worker, submit, status, fetch, demo
 ]
 

@@ -17,7 +17,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--report", type=Path, help="write the JSON report here")
     p.add_argument("--pictures", type=Path, help="write the PNG pictures and charts (as a job's) into this folder")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
-    p.add_argument("--psnr-budget", type=float, default=0.5, help="dB the mirrors may cost in total (default 0.5)")
+    p.add_argument("--preset", choices=["small", "balanced", "high", "lossless"], default="balanced",
+                   help="attribute codec and reductions (default balanced); lossless stores float32")
+    p.add_argument("--psnr-budget", type=float, default=None,
+                   help="dB of held-out PSNR all lossy stages may cost together (default: the preset's)")
     p.add_argument("--max-levels", type=int, default=4)
     p.add_argument("--iterations", type=int, default=200, help="optimisation steps per level")
     p.add_argument("--resolution", type=int, default=192, help="longest side of training/evaluation views")
@@ -29,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     d = sub.add_parser("decompress", help="decode a .symgs archive to a scene file (format by extension)")
     d.add_argument("archive", type=Path)
-    d.add_argument("-o", "--output", type=Path, required=True, help="output scene (.ply)")
+    d.add_argument("-o", "--output", type=Path, required=True, help="output scene: .ply, .spz or .compressed.ply")
+    d.add_argument("--spz-version", type=int, choices=[2, 3, 4], default=3, help=".spz version to write (default 3)")
     d.set_defaults(func=_decompress)
 
 
@@ -37,7 +41,7 @@ def _compress(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from symgs_core.config import CompressConfig
+    from symgs_core.config import PRESET_BUDGETS, CompressConfig
     from symgs_core.pipeline import compress
 
     if not args.scene.is_file():
@@ -46,7 +50,8 @@ def _compress(args: argparse.Namespace) -> int:
         raise CliError(f"images folder not found: {args.images}")
     try:
         config = CompressConfig(
-            psnr_budget=args.psnr_budget,
+            preset=args.preset,
+            psnr_budget=PRESET_BUDGETS[args.preset] if args.psnr_budget is None else args.psnr_budget,
             max_levels=args.max_levels,
             iterations=args.iterations,
             resolution=args.resolution,
@@ -98,18 +103,21 @@ def _compress(args: argparse.Namespace) -> int:
 
 def _decompress(args: argparse.Namespace) -> int:
     from symgs_core.codec import ArchiveError
+    from symgs_core.export import export_scene, format_of
     from symgs_core.pipeline import decompress
-    from symgs_core.ply import save_scene
 
     if not args.archive.is_file():
         raise CliError(f"archive not found: {args.archive}")
-    if args.output.suffix.lower() != ".ply":
-        raise CliError(f"unsupported output format {args.output.suffix!r}: use .ply")
+    try:
+        fmt = format_of(args.output)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
     try:
         scene = decompress(args.archive)
     except ArchiveError as exc:
         raise CliError(f"{args.archive}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    save_scene(scene, args.output)
-    print(f"{args.output}: {len(scene)} Gaussians, SH degree {scene.sh_degree}")
+    export_scene(scene, args.output, fmt, version=args.spz_version)
+    version = f" v{args.spz_version}" if fmt == "spz" else ""
+    print(f"{args.output}: {fmt}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0

@@ -8,13 +8,18 @@ from typing import Literal
 
 Preset = Literal["small", "balanced", "high", "lossless"]
 DeviceChoice = Literal["auto", "cpu", "cuda"]
+# Each preset's budget (dB) when none is given: what the command line and the service default to.
+PRESET_BUDGETS: dict[str, float] = {"small": 1.0, "balanced": 0.3, "high": 0.1, "lossless": 0.0}
 
 
 @dataclass(frozen=True)
 class CompressConfig:
     """What a compression job may spend and must keep.
 
-    psnr_budget   dB of held-out PSNR the mirrors may cost in total, below the uncompressed scene.
+    preset        attribute codec and reductions (``PRESET_BUDGETS``): ``lossless`` stores float32 and spends the
+                  budget on mirrors alone; the others share it between mirrors, pruning, SH reduction and
+                  quantisation (``budget.SHARES``), from coarse starting steps (small) to fine ones (high).
+    psnr_budget   dB of held-out PSNR all lossy stages together may cost, below the uncompressed scene.
     nominal_psnr  fidelity (dB) a trained scene typically has against its own photographs. Without test images the
                   reference is a render of the input, against which the input scores +inf; the budget then becomes
                   the error that, added to a scene of this nominal quality, would cost ``psnr_budget`` dB.
@@ -25,7 +30,7 @@ class CompressConfig:
     pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
     """
 
-    preset: Preset = "balanced"
+    preset: Preset = "lossless"
     psnr_budget: float = 0.5
     nominal_psnr: float = 33.0
     max_levels: int = 4
@@ -40,6 +45,8 @@ class CompressConfig:
     detect: dict = field(default_factory=dict)  # overrides of DetectConfig fields
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESET_BUDGETS:
+            raise ValueError(f"preset must be one of {sorted(PRESET_BUDGETS)}, got {self.preset!r}")
         if not 0 <= self.psnr_budget <= 60:
             raise ValueError(f"psnr_budget must be in 0..60 dB, got {self.psnr_budget}")
         if not 0 <= self.max_levels <= 16:

@@ -19,6 +19,7 @@ from .mirror import Plane
 from .optimize import LevelState, evaluate
 from .progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from .scene import GaussianScene
+from .stages import mirror_floor, reduce_and_encode
 from .views import ViewSet, dataset_views, self_supervised_views
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
@@ -137,7 +138,7 @@ def compress(
         source,
         views,
         config=replace(config, max_levels=max_levels),
-        floor=floor,
+        floor=mirror_floor(config, floor, reference_psnr),
         extent=radius,
         report=report,
         checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
@@ -146,8 +147,11 @@ def compress(
 
     t0 = time.perf_counter()
     report("encode", 0.0, "encoding archive")
-    baseline = _archive(LevelState.plain(source), meta)
-    archive = _archive(state, meta)
+    coded = reduce_and_encode(
+        LevelState.plain(source), state, views.train, views.test, background, config=config, floor=floor,
+        reference=reference_psnr, extent=radius, meta=meta, report=report,
+    )
+    state, archive, baseline = coded.state, coded.archive, coded.baseline
     report.timed("encode", time.perf_counter() - t0)
 
     t0 = time.perf_counter()
@@ -164,6 +168,8 @@ def compress(
         "ratio_to_baseline": len(baseline) / len(archive),
         "gaussians": {"input": len(source), "stored": len(state.stored), "decoded": len(decoded)},
         "levels": [r.as_dict() for r in records],
+        "stages": coded.stages,
+        "codec": {"name": coded.codec, "preset": config.preset, "quantization": coded.quantization},
         "psnr": final_psnr,
         "ssim": final_ssim,
         "psnr_input": reference_psnr,

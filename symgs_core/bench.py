@@ -1,0 +1,237 @@
+"""Benchmark: the presets with and without mirrors against the peers' formats, on size, PSNR and time.
+
+For every scene, every entry is judged the same way: decode it, render it from the held-out cameras of
+``views.self_supervised_views`` (never trained on) and take the PSNR against renders of the uncompressed scene.
+Peers: `.spz` v3 from our exporter, and, when PlayCanvas ``splat-transform`` is installed, its `.spz` v3,
+compressed PLY and SOG (each decoded back by splat-transform itself). The ``matched`` entry compresses with the
+budget whose floor is the PSNR of splat-transform's `.spz` v3 (ours when it is absent): the archive at equal or
+better PSNR, the comparison the goals are stated in.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from .config import CompressConfig
+from .optimize import evaluate
+from .scene import GaussianScene
+from .views import ViewSet, self_supervised_views
+
+COLUMNS = ["scene", "entry", "preset", "mirrors", "bytes", "ratio_to_ply", "psnr", "encode_s", "decode_s", "gaussians"]
+
+
+@dataclass
+class BenchRow:
+    scene: str
+    entry: str  # "symgs", "symgs matched", "spz v3 (symgs)", "spz v3 (splat-transform)", ...
+    preset: str
+    mirrors: bool | None
+    bytes: int
+    ratio_to_ply: float
+    psnr: float  # +inf: renders exactly as the input
+    encode_s: float
+    decode_s: float
+    gaussians: int
+
+
+def find_splat_transform() -> str | None:
+    """The ``splat-transform`` executable: ``SPLAT_TRANSFORM``, then PATH, then the test suite's npm cache."""
+    given = os.environ.get("SPLAT_TRANSFORM")
+    if given:
+        return given
+    found = shutil.which("splat-transform")
+    if found:
+        return found
+    cache = Path(os.environ.get("SYMGS_NPM_CACHE", Path.home() / ".cache" / "symgs" / "npm"))
+    exe = cache / "node_modules" / ".bin" / "splat-transform"
+    return str(exe) if exe.exists() else None
+
+
+def budget_for_floor(floor: float, nominal: float) -> float:
+    """The ``psnr_budget`` whose self-supervised floor (``CompressConfig.self_supervised_floor``) is ``floor``."""
+    return 10.0 * math.log10(1.0 + 10.0 ** ((nominal - floor) / 10.0))
+
+
+def _psnr(scene: GaussianScene, views: ViewSet) -> float:
+    return evaluate(scene, views.test, views.background)[0]
+
+
+def _run(args: list[str]) -> None:
+    done = subprocess.run(args, capture_output=True, text=True, timeout=1800)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(args[:2])} failed: {done.stderr.strip()[-500:]}")
+
+
+def _peers(ply: Path, name: str, source: GaussianScene, views: ViewSet, exe: str | None, work: Path) -> list[BenchRow]:
+    from .export import read_spz, write_spz
+    from .ply import load_scene
+
+    ply_bytes = ply.stat().st_size
+    rows = []
+    t0 = time.perf_counter()
+    data = write_spz(source, version=3)
+    encode = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    decoded = read_spz(data)
+    decode = time.perf_counter() - t0
+    rows.append(BenchRow(name, "spz v3 (symgs)", "-", None, len(data), ply_bytes / len(data), _psnr(decoded, views),
+                         encode, decode, len(decoded)))  # fmt: skip
+    if exe is None:
+        return rows
+    for entry, target, extra in (
+        ("spz v3 (splat-transform)", "peer.spz", ["--spz-version", "3"]),
+        ("compressed ply (splat-transform)", "peer.compressed.ply", []),
+        ("sog (splat-transform)", "peer.sog", ["-g", "cpu"]),
+    ):
+        out, back = work / target, work / f"{target}.ply"
+        t0 = time.perf_counter()
+        _run([exe, "-w", "-q", str(ply), str(out), *extra])
+        encode = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        _run([exe, "-w", "-q", str(out), str(back)])
+        decode = time.perf_counter() - t0
+        decoded = load_scene(back)
+        rows.append(BenchRow(name, entry, "-", None, out.stat().st_size, ply_bytes / out.stat().st_size,
+                             _psnr(decoded, views), encode, decode, len(decoded)))  # fmt: skip
+    return rows
+
+
+def _ours(ply: Path, name: str, config: CompressConfig, views: ViewSet, entry: str) -> BenchRow:
+    from .pipeline import compress, decompress
+
+    t0 = time.perf_counter()
+    result = compress(ply, config=config)
+    encode = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    decoded = decompress(result.archive)
+    decode = time.perf_counter() - t0
+    size = len(result.archive)
+    return BenchRow(name, entry, config.preset, config.use_mirrors, size, ply.stat().st_size / size,
+                    _psnr(decoded, views), encode, decode, len(decoded))  # fmt: skip
+
+
+def bench_scene(
+    ply: Path,
+    *,
+    presets: list[str],
+    config: CompressConfig,
+    mirrors: tuple[bool, ...] = (True, False),
+    peers: bool = True,
+    match: bool = True,
+    progress=None,  # noqa: ANN001 - Callable[[str], None]
+) -> list[BenchRow]:
+    """Every entry for one scene; ``config`` gives the views, iterations and levels every run of ours shares."""
+    from .ply import load_scene
+
+    say = progress or (lambda message: None)
+    name = ply.stem
+    source = load_scene(ply)
+    views = self_supervised_views(source, config.train_views, config.eval_views, config.resolution, torch.zeros(3),
+                                  seed=config.seed)  # fmt: skip
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="symgs-bench-") as tmp:
+        if peers:
+            say(f"{name}: peers")
+            rows += _peers(ply, name, source, views, find_splat_transform(), Path(tmp))
+    for preset in presets:
+        for use_mirrors in mirrors:
+            say(f"{name}: {preset}, mirrors {'on' if use_mirrors else 'off'}")
+            run = replace(config, preset=preset, use_mirrors=use_mirrors, psnr_budget=_budget(preset, config))
+            rows.append(_ours(ply, name, run, views, "symgs"))
+    if match and peers:
+        reference = next((r for r in rows if r.entry == "spz v3 (splat-transform)"), None)
+        reference = reference or next(r for r in rows if r.entry == "spz v3 (symgs)")
+        if math.isfinite(reference.psnr):
+            say(f"{name}: matched to {reference.entry} at {reference.psnr:.2f} dB")
+            budget = budget_for_floor(reference.psnr, config.nominal_psnr)
+            run = replace(config, preset="balanced", use_mirrors=True, psnr_budget=min(budget, 60.0))
+            rows.append(_ours(ply, name, run, views, f"symgs matched to {reference.entry}"))
+    return rows
+
+
+def _budget(preset: str, config: CompressConfig) -> float:
+    from .config import PRESET_BUDGETS
+
+    return PRESET_BUDGETS[preset] if preset != "lossless" else config.psnr_budget
+
+
+def to_csv(rows: list[BenchRow]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("inf" if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(row).items()})
+    return out.getvalue()
+
+
+def to_markdown(rows: list[BenchRow]) -> str:
+    lines = [
+        "| scene | entry | preset | mirrors | bytes | x smaller than PLY | PSNR (dB) | encode (s) | decode (s) |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        mirrors = "-" if r.mirrors is None else ("on" if r.mirrors else "off")
+        psnr = "lossless" if math.isinf(r.psnr) else f"{r.psnr:.2f}"
+        lines.append(f"| {r.scene} | {r.entry} | {r.preset} | {mirrors} | {r.bytes:,} | {r.ratio_to_ply:.1f} | "
+                     f"{psnr} | {r.encode_s:.1f} | {r.decode_s:.2f} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def _chart(rows: list[BenchRow], x: str, xlabel: str, title: str) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r.scene for r in rows})
+    cols = min(3, len(scenes))
+    fig, axes = plt.subplots(-(-len(scenes) // cols), cols, figsize=(5 * cols, 4 * -(-len(scenes) // cols)),
+                             squeeze=False)  # fmt: skip
+    finite = [r.psnr for r in rows if math.isfinite(r.psnr)]
+    top = (max(finite) + 5.0) if finite else 60.0
+    for ax, scene in zip(axes.flat, scenes):
+        for r in (r for r in rows if r.scene == scene):
+            label = r.entry if r.entry != "symgs" else f"symgs {r.preset} mirrors {'on' if r.mirrors else 'off'}"
+            marker = "o" if r.entry.startswith("symgs") else "s"
+            ax.scatter(getattr(r, x), r.psnr if math.isfinite(r.psnr) else top, marker=marker, label=label)
+        ax.set_xscale("log")
+        ax.set_title(scene)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("PSNR vs uncompressed (dB; top row: lossless)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6)
+    for ax in list(axes.flat)[len(scenes) :]:
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def write_outputs(rows: list[BenchRow], out: Path) -> dict[str, Path]:
+    """bench.csv, bench.md, rate_distortion.png (PSNR vs bytes), speed_accuracy.png (PSNR vs encode seconds)."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        "csv": out / "bench.csv",
+        "markdown": out / "bench.md",
+        "rate_distortion": out / "rate_distortion.png",
+        "speed_accuracy": out / "speed_accuracy.png",
+    }
+    files["csv"].write_text(to_csv(rows))
+    files["markdown"].write_text(to_markdown(rows))
+    files["rate_distortion"].write_bytes(_chart(rows, "bytes", "bytes (log)", "Rate-distortion"))
+    files["speed_accuracy"].write_bytes(_chart(rows, "encode_s", "encode seconds (log)", "Speed-accuracy"))
+    return files

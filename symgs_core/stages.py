@@ -1,0 +1,159 @@
+"""The stages after the mirror levels: pruning, SH reduction, quantisation, entropy coding, and their accounting.
+
+Each stage reports what it saved in bytes and cost in dB (held-out PSNR), so a report shows where the size went:
+mirrors, pruning and SH reduction are measured on the lossless (float32 + zstd) archive of what they leave;
+quantisation against the fixed-width size of its symbols (what a plain quantiser would store); entropy coding is
+the final archive. Preset ``lossless`` runs no reduction and stores float32, as the archive always did.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from torch import Tensor
+
+from .budget import SHARES, extent_of, fit_quantization, split_budget
+from .codec import ArchiveContents, coding_order, encode_archive
+from .codec.steps import QuantSteps, register_quantized
+from .config import CompressConfig
+from .mirror import Plane
+from .optimize import LevelState, evaluate
+from .prune import prune, reduce_sh
+
+# Starting steps of each preset; the search then scales them to spend the preset's budget.
+PRESET_STEPS = {"small": QuantSteps().scaled(2.0), "balanced": QuantSteps(), "high": QuantSteps().scaled(0.5)}
+
+
+def write_archive(state: LevelState, meta: dict, codec: str = "lossless") -> bytes:
+    """The archive of ``state`` in coding order, written by archive codec ``codec``."""
+    planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
+    stored, bits = state.stored.detach().to("cpu"), state.bits.cpu()
+    perm = coding_order(stored, bits)
+    return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
+
+
+def mirror_floor(config: CompressConfig, floor: float, reference: float) -> float:
+    """The floor the mirror levels are judged against: all of it for ``lossless``, their share otherwise."""
+    return floor if config.preset == "lossless" else split_budget(floor, reference)["mirrors"]
+
+
+def _fixed_width_bytes(state: LevelState, steps: QuantSteps) -> int:
+    """Bytes of the quantised symbols at the narrowest fixed width per attribute (no entropy coding)."""
+    stored = state.stored.detach().to("cpu")
+    extent = extent_of(stored)
+    total_bits = 0.0
+    grids = {
+        "means": steps.position * max(extent, 1e-12), "scales": steps.scale, "sh_dc": steps.dc,
+        "quats": steps.rotation, "opacities": steps.opacity,
+    }  # fmt: skip
+    for name, step in grids.items():
+        values = stored.tensors()[name].numpy().astype(np.float64)
+        if name == "opacities":
+            values = 1.0 / (1.0 + np.exp(-values))
+        span = float(values.max() - values.min()) if values.size else 0.0
+        per = values[0].size if values.ndim > 1 else 1
+        if name == "quats":
+            per, span = 3, 2.0**0.5  # three of four components in [-1/sqrt2, 1/sqrt2], plus a 2-bit index
+            total_bits += 2 * len(values)
+        total_bits += len(values) * per * math.ceil(math.log2(span / step + 2))
+    rest = stored.sh_rest.numpy()
+    for lvl, step in zip(range(1, stored.sh_degree + 1), steps.sh):
+        band = rest[:, lvl * lvl - 1 : (lvl + 1) ** 2 - 1, :]
+        stored_values = band[np.abs(band).reshape(len(band), -1).max(axis=1) * 2 >= step]
+        if stored_values.size:
+            span = float(stored_values.max() - stored_values.min())
+            total_bits += stored_values.size * math.ceil(math.log2(span / step + 2))
+    total_bits += 2 * len(stored) if stored.sh_degree else 0
+    return int(total_bits // 8) + state.bits.shape[1] * ((len(stored) + 7) // 8)
+
+
+@dataclass
+class Coded:
+    """The stored state after every stage, its archive, the codec alone on the input (baseline), the accounting."""
+
+    state: LevelState
+    archive: bytes
+    baseline: bytes
+    codec: str
+    stages: list[dict] = field(default_factory=list)
+    quantization: dict | None = None
+
+
+def _stage(name: str, before: int, after: int, psnr_before: float, psnr_after: float, seconds: float, **extra) -> dict:
+    cost = psnr_before - psnr_after if math.isfinite(psnr_before) and math.isfinite(psnr_after) else None
+    return {
+        "stage": name, "bytes_before": before, "bytes_after": after, "saved_bytes": before - after,
+        "psnr_after": psnr_after, "cost_db": cost, "seconds": seconds, **extra,
+    }  # fmt: skip
+
+
+def reduce_and_encode(
+    source_state: LevelState,
+    state: LevelState,
+    train: list,
+    test: list,
+    background: Tensor,
+    *,
+    config: CompressConfig,
+    floor: float,
+    reference: float,
+    extent: float,
+    meta: dict,
+    report,  # noqa: ANN001 - pipeline._Reporter
+) -> Coded:
+    """Run pruning, SH reduction and quantisation on ``state`` (after the mirrors) within the shared budget."""
+    t0 = time.perf_counter()
+    input_bytes = len(write_archive(source_state, meta))
+    mirrored_bytes = len(write_archive(state, meta)) if state.normals.shape[0] else input_bytes
+    psnr = evaluate(state.expanded(), test, background)[0] if state.normals.shape[0] else reference
+    stages = [_stage("mirrors", input_bytes, mirrored_bytes, reference, psnr, time.perf_counter() - t0,
+                     levels=int(state.normals.shape[0]))]  # fmt: skip
+    if config.preset == "lossless":
+        archive = write_archive(state, meta)
+        stages.append(_stage("entropy_coding", mirrored_bytes, len(archive), psnr, psnr, 0.0, codec="lossless"))
+        return Coded(state, archive, write_archive(source_state, meta), "lossless", stages)
+
+    floors = split_budget(floor, reference)
+    before_bytes = mirrored_bytes
+    for name, run in (
+        ("pruning", lambda st: prune(st, train, test, background, floor=floors["pruning"], extent=extent,
+                                     iterations=config.iterations // 4)),
+        ("sh_reduction", lambda st: reduce_sh(st, train, test, background, floor=floors["sh_reduction"])),
+    ):  # fmt: skip
+        t0 = time.perf_counter()
+        report("encode", 0.0, f"{name.replace('_', ' ')}")
+        result = run(state)
+        if result is None:
+            stages.append(_stage(name, before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0, removed=0))
+            continue
+        state = result.state
+        after_bytes = len(write_archive(state, meta))
+        stages.append(_stage(name, before_bytes, after_bytes, psnr, result.psnr, time.perf_counter() - t0,
+                             removed=result.removed, threshold=result.threshold))  # fmt: skip
+        before_bytes, psnr = after_bytes, result.psnr
+        report.timed(name, time.perf_counter() - t0)
+
+    t0 = time.perf_counter()
+    report("encode", 0.3, "fitting quantisation steps")
+    fit = fit_quantization(state, test, background, floor=floors["quantization"], start=PRESET_STEPS[config.preset],
+                           psnr_before=psnr)  # fmt: skip
+    report.timed("quantize", time.perf_counter() - t0)
+    if fit is None:  # nothing lossy fits the budget that is left: store the attributes exactly
+        archive = write_archive(state, meta)
+        stages.append(_stage("quantization", before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0))
+        stages.append(_stage("entropy_coding", before_bytes, len(archive), psnr, psnr, 0.0, codec="lossless"))
+        return Coded(state, archive, write_archive(source_state, meta), "lossless", stages)
+    codec = register_quantized(config.preset, fit.steps, extent_of(state.stored))
+    fixed = _fixed_width_bytes(state, fit.steps)
+    stages.append(_stage("quantization", before_bytes, fixed, psnr, fit.psnr, time.perf_counter() - t0,
+                         factor=fit.factor, tries=fit.tries))  # fmt: skip
+    t0 = time.perf_counter()
+    archive = write_archive(state, meta, codec)
+    stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0,
+                         codec=codec))  # fmt: skip
+    quantization = {"steps": fit.steps.as_dict(), "factor": fit.factor, "floor": floors["quantization"],
+                    "floors": floors, "shares": SHARES}  # fmt: skip
+    return Coded(state, archive, write_archive(source_state, meta, codec), codec, stages, quantization)

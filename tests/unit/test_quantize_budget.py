@@ -1,0 +1,49 @@
+"""The shared PSNR budget: stage floors as cumulative shares of the excess MSE, and the quantisation step search."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from symgs_core.budget import SHARES, fit_quantization, psnr_to_mse, quantized, split_budget
+from symgs_core.codec.steps import QuantSteps
+from symgs_core.optimize import LevelState, evaluate
+from symgs_core.synthetic import synthetic_scene
+from symgs_core.views import self_supervised_views
+
+
+def test_stage_floors_are_cumulative_shares_of_the_excess_mse() -> None:
+    floors = split_budget(40.0, math.inf)
+    assert list(floors) == list(SHARES)
+    for stage, share in SHARES.items():
+        assert psnr_to_mse(floors[stage]) == pytest.approx(share * psnr_to_mse(40.0), rel=1e-12)
+    assert floors["quantization"] == pytest.approx(40.0)
+    # Against test images the reference error is not zero: shares apply to the excess over it.
+    real = split_budget(30.0, 31.0)
+    excess = psnr_to_mse(30.0) - psnr_to_mse(31.0)
+    assert psnr_to_mse(real["mirrors"]) == pytest.approx(psnr_to_mse(31.0) + SHARES["mirrors"] * excess)
+    assert split_budget(math.inf, math.inf) == {stage: math.inf for stage in SHARES}
+
+
+@pytest.fixture(scope="module")
+def setting():
+    scene = synthetic_scene("global", n=700, seed=2, sh_degree=1).scene
+    return LevelState.plain(scene), self_supervised_views(scene, 2, 3, 48, torch.zeros(3))
+
+
+def test_step_search_spends_the_budget_without_going_under_the_floor(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    fit = fit_quantization(state, views.test, views.background, floor=42.0, start=QuantSteps(), psnr_before=math.inf)
+    assert fit is not None and fit.psnr >= 42.0
+    decoded = LevelState(quantized(state.stored, fit.steps), state.normals, state.offsets, state.bits)
+    assert evaluate(decoded.expanded(), views.test, views.background)[0] == pytest.approx(fit.psnr)
+    assert fit.psnr < 52.0  # it coarsened the steps towards the floor instead of stopping at the first pass
+    assert all(t["psnr"] >= 42.0 for t in fit.tries if t["factor"] == fit.factor)
+
+
+def test_no_quantisation_fits_an_infinite_floor(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    assert fit_quantization(state, views.test, views.background, floor=math.inf, start=QuantSteps(),
+                            psnr_before=math.inf) is None  # fmt: skip
