@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -31,9 +32,15 @@ def make_scene(path: Path, gaussians: int) -> str:
 def run_demo(output: Path, *, gaussians: int = 4000) -> int:
     console = Console()
     stack = LocalStack()
+    external = os.environ.get("SYMGS_REDIS_URL")
+    if shutil.which("redis-server") is None and not external:
+        raise CliError("the demo needs redis-server (apt-get install redis-server) or SYMGS_REDIS_URL of a Redis")
     try:
-        with console.status("starting redis-server, the API and a CPU worker"):
-            stack.start_redis()
+        with console.status("starting Redis, the API and a CPU worker"):
+            if shutil.which("redis-server") is not None:
+                stack.start_redis()
+            else:
+                stack.redis_url = external
             stack.start_api()
             stack.start_worker("cpu")
     except StackError as exc:

@@ -27,6 +27,8 @@ def make_celery(settings: Settings) -> Celery:
         # Redis hands an unacknowledged message to another worker after this long; it must exceed the longest job,
         # or a running job would start twice. Lost workers are detected much sooner by job leases (maintenance.py).
         broker_transport_options={"visibility_timeout": settings.visibility_timeout},
+        # On a lost broker connection the running job goes on: its lease, not the connection, tells others it lives.
+        worker_cancel_long_running_tasks_on_connection_loss=False,
         task_soft_time_limit=settings.soft_time_limit,
         task_time_limit=settings.hard_time_limit,
         task_ignore_result=True,  # state and results live in the job store and the storage
