@@ -14,6 +14,7 @@ from api_schemas import JobParams
 from service.stack import LocalStack
 from worker.celery_app import make_celery
 from worker.maintenance import SweepReport, expire, recover_lost, reroute_stranded
+from worker.runner import headline, mark_failed
 from worker.settings import Settings
 from worker.storage import DirectoryStorage
 from worker.store import JobRecord, JobStore, owner_of
@@ -159,3 +160,31 @@ def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, red
     expire(store, storage, settings, report)
     assert report.expired == [_job(2).id]
     assert store.get(_job(2).id) is None and not storage.job_dir(_job(2).id).exists()
+
+
+def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: Path) -> None:
+    storage = DirectoryStorage(tmp_path)
+    for i in (1, 2):
+        store.create(_job(i))
+        store.transition(_job(i).id, "running")
+    store.acquire_lease(_job(1).id, "other-worker", 30)
+    assert mark_failed(_job(1).id, "boom", "x", store=store, storage=storage, token="me", lease_s=30) is None
+    assert store.get(_job(1).id).state == "running" and store.lease_held(_job(1).id)
+
+    store.acquire_lease(_job(2).id, "me", 30)
+    failed = mark_failed(_job(2).id, "bad_sh_count", "scene.ply: 10 f_rest", store=store, storage=storage, token="me",
+                         lease_s=30)  # fmt: skip
+    assert (failed.state, failed.error_code, failed.error_message) == ("failed", "bad_sh_count", "scene.ply: 10 f_rest")
+    assert not store.lease_held(_job(2).id)
+
+
+def test_headline_of_a_report() -> None:
+    level = {"level": 0, "normal": [1.0, 0.0, 0.0], "offset": 0.5, "left": 10, "right": 9, "psnr_after": 40.0,
+             "votes": 3.0, "coverage": 0.9, "psnr_before": 41.0, "ssim": 0.99, "seconds": 1.0}  # fmt: skip
+    report = {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0, "ratio_to_baseline": 1.5, "psnr": None,
+              "ssim": 1.0, "seconds": {"load": 0.25, "levels": 2.0}, "levels": [
+                  {**level, "accepted": True}, {**level, "level": 1, "accepted": False}]}  # fmt: skip
+    mirrors, metrics = headline(report)
+    assert mirrors == [{k: level[k] for k in ("level", "normal", "offset", "left", "right", "psnr_after")}]
+    assert metrics == {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0, "ratio_to_baseline": 1.5,
+                       "psnr": None, "ssim": 1.0, "seconds": 2.25}  # fmt: skip
