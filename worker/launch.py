@@ -20,6 +20,11 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
         raise ValueError(f"mode must be 'gpu' or 'cpu', got {mode!r}")
     if mode == "gpu" and concurrency != 1:
         raise ValueError(f"a gpu worker runs one job at a time, got concurrency {concurrency}")
+    if mode == "gpu":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ValueError("no CUDA device is visible to this process; run a cpu worker here")
     settings = get_settings()
     name = f"{mode}-{uuid.uuid4().hex[:8]}@{socket.gethostname()}"
     maintenance: list[Maintenance] = []
