@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import uuid
 
@@ -21,6 +22,8 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
     if mode == "gpu" and concurrency != 1:
         raise ValueError(f"a gpu worker runs one job at a time, got concurrency {concurrency}")
     if mode == "gpu":
+        # Ask NVML, not the CUDA runtime: pool processes are forked from this one, and CUDA does not survive a fork.
+        os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
         import torch
 
         if not torch.cuda.is_available():
