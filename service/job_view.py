@@ -49,6 +49,7 @@ def public_job(record: JobRecord) -> Job:
         updated_at=record.updated_at,
         links=JobLinks(
             self=base, events=f"{base}/events", result=f"{base}/result", result_ply=f"{base}/result.ply",
+            result_spz=f"{base}/result.spz", result_compressed_ply=f"{base}/result.compressed.ply",
             report=f"{base}/report",
         ),  # fmt: skip
     )

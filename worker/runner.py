@@ -9,11 +9,9 @@ task's ``on_failure`` hook, the one place that marks a job failed.
 from __future__ import annotations
 
 import json
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 from redis import RedisError
@@ -100,18 +98,18 @@ def headline(report: dict) -> tuple[list[dict], dict]:
 
 
 def _write_results(storage: Storage, job_id: str, result) -> None:  # noqa: ANN001 - symgs_core CompressResult
+    from symgs_core.export import ply_bytes, write_compressed_ply, write_spz
     from symgs_core.pipeline import decompress
-    from symgs_core.ply import save_scene
 
     storage.write_artifact(job_id, "result.symgs", result.archive)
     storage.write_artifact(job_id, "report.json", json.dumps(result.report, indent=1).encode())
     for name, png in result.images.items():
         storage.write_artifact(job_id, f"charts/{name}.png", png)
-    # The decoded scene is what a viewer gets; decoding the archive we store proves the archive is whole.
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "result.ply"
-        save_scene(decompress(result.archive), path)
-        storage.write_artifact(job_id, "result.ply", path.read_bytes())
+    # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
+    decoded = decompress(result.archive)
+    storage.write_artifact(job_id, "result.ply", ply_bytes(decoded))
+    storage.write_artifact(job_id, "result.spz", write_spz(decoded))
+    storage.write_artifact(job_id, "result.compressed.ply", write_compressed_ply(decoded))
 
 
 def run_job(

@@ -5,7 +5,8 @@ Layout under the root (a directory both sides mount)::
     staging/<token>/            an upload being received and checked, before it becomes a job
     jobs/<id>/upload/           scene.ply and images/ (the extracted dataset), as accepted
     jobs/<id>/checkpoints/      per-level checkpoints of the pipeline; a rerun resumes from them
-    jobs/<id>/result/           result.symgs, result.ply, report.json, charts/<name>.png
+    jobs/<id>/result/           result.symgs, result.ply, result.spz, result.compressed.ply, report.json,
+                                charts/<name>.png
 
 Results are written under fixed names, atomically (write then rename), so a rerun overwrites and a reader never
 sees half a file.
@@ -23,7 +24,9 @@ from pathlib import Path
 
 from .settings import Settings
 
-_ARTIFACT = re.compile(r"^(result\.symgs|result\.ply|result\.spz|report\.json|charts/[A-Za-z0-9_-]{1,64}\.png)$")
+_ARTIFACT = re.compile(
+    r"^(result\.symgs|result\.ply|result\.spz|result\.compressed\.ply|report\.json|charts/[A-Za-z0-9_-]{1,64}\.png)$"
+)
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 
 

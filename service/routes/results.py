@@ -63,12 +63,24 @@ def get_result_ply(job_id: str, owner: OwnerDep, store: StoreDep, storage: Stora
 @router.get(
     "/{job_id}/result.spz",
     summary="Download the decoded scene as .spz",
-    description="The decoded scene in Niantic's .spz format, when the server's codec writes it (404 otherwise).",
+    description="The decoded scene in Niantic's .spz format (version 3), which most web viewers read.",
     response_class=FileResponse,
     responses={**_binary(".spz (gzip)"), **_ERRORS},
 )
 def get_result_spz(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
     return _artifact(job_id, "result.spz", owner, store, storage, "application/octet-stream", f"{job_id}.spz")
+
+
+@router.get(
+    "/{job_id}/result.compressed.ply",
+    summary="Download the decoded scene as PlayCanvas compressed PLY",
+    description="The decoded scene in PlayCanvas' compressed PLY layout (quantised in chunks of 256 Gaussians).",
+    response_class=FileResponse,
+    responses={**_binary("compressed PLY", "application/x-ply"), **_ERRORS},
+)
+def get_result_compressed_ply(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    name = "result.compressed.ply"
+    return _artifact(job_id, name, owner, store, storage, "application/x-ply", f"{job_id}.compressed.ply")
 
 
 @router.get(

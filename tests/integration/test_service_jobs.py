@@ -15,6 +15,7 @@ REPORT_KEYS = {"input_bytes", "output_bytes", "baseline_bytes", "ratio_to_ply", 
 
 
 def test_full_job_results_decode(done_job: dict, api_a: httpx.Client, scene_path: Path, tmp_path: Path) -> None:
+    from symgs_core.export import read_spz, write_compressed_ply, write_spz
     from symgs_core.pipeline import decompress
     from symgs_core.ply import load_scene
 
@@ -24,7 +25,9 @@ def test_full_job_results_decode(done_job: dict, api_a: httpx.Client, scene_path
     assert done_job["scene"] == {"filename": "mirrored.ply", "bytes": scene_path.stat().st_size,
                                  "gaussians": len(source), "sh_degree": 1}  # fmt: skip
     assert done_job["started_at"] >= done_job["created_at"] and done_job["finished_at"] >= done_job["started_at"]
-    assert {"result.symgs", "result.ply", "report.json"} <= set(done_job["artifacts"])
+    assert {"result.symgs", "result.ply", "result.spz", "result.compressed.ply", "report.json"} <= set(
+        done_job["artifacts"]
+    )
 
     report = api_a.get(f"/v1/jobs/{done_job['id']}/report").json()
     assert REPORT_KEYS <= set(report)
@@ -46,8 +49,16 @@ def test_full_job_results_decode(done_job: dict, api_a: httpx.Client, scene_path
     for name, tensor in decoded.tensors().items():
         assert torch.equal(getattr(downloaded, name), tensor.float()), name
 
-    assert api_a.get(f"/v1/jobs/{done_job['id']}/result.spz").json()["error"]["code"] == "artifact_missing"
-    assert api_a.get(f"/v1/jobs/{done_job['id']}/charts/nope.png").status_code == 404
+    spz = api_a.get(f"/v1/jobs/{done_job['id']}/result.spz")
+    assert spz.status_code == 200 and torch.equal(read_spz(spz.content).means, read_spz(write_spz(decoded)).means)
+    compressed = api_a.get(f"/v1/jobs/{done_job['id']}/result.compressed.ply")
+    assert compressed.status_code == 200 and compressed.content == write_compressed_ply(decoded)
+    for name in done_job["artifacts"]:
+        if name.startswith("charts/"):
+            chart = api_a.get(f"/v1/jobs/{done_job['id']}/{name}")
+            assert chart.headers["content-type"] == "image/png" and chart.content.startswith(b"\x89PNG")
+    missing = api_a.get(f"/v1/jobs/{done_job['id']}/charts/nope.png")
+    assert missing.status_code == 404 and missing.json()["error"]["code"] == "artifact_missing"
 
 
 def test_events_arrive_in_order_and_replay(done_job: dict, api_a: httpx.Client) -> None:
