@@ -3,7 +3,7 @@
 The object is an ellipsoid shell of flat Gaussians lying in its surface, spaced so that neighbours overlap, with
 random colours (SH degree 3) and opacities in 0.5..1: every pixel of the silhouette is covered by front and back
 layers, the case that matters when fine-tuning real objects. Prints a Markdown table; each case runs in a fresh
-process, so "peak memory" is what render + backward added to the process's peak resident memory, beyond the scene.
+process, so "peak MiB" is what render + backward added to the process's peak resident memory, beyond the scene.
 
     python benchmarks/bench_render.py --threads 2
 """
@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numba
 import torch
@@ -82,19 +83,28 @@ def _peak_rss_bytes() -> int:
     return peak if sys.platform == "darwin" else peak * 1024
 
 
-def measure(n: int, size: int, repeats: int) -> dict[str, float]:
+def real_view(path: str, size: int, view: int) -> tuple[GaussianScene, Camera]:
+    """A real scene and camera ``view`` of the 8 spread over its bounding sphere."""
+    from symgs_core.cameras import scene_cameras
+    from symgs_core.ply import load_scene
+
+    scene = load_scene(path)
+    return scene, scene_cameras(scene.means, 8, size, size)[view]
+
+
+def measure(n: int, size: int, repeats: int, scene_path: str | None = None, view: int = 0) -> dict[str, float]:
     """Run in a fresh process: time a first small render (kernel load or compile), then medians over ``repeats``
-    steps on the case's scene, and the peak memory those steps added beyond the scene itself."""
+    steps on the case's scene (the dense object of ``n`` Gaussians, or the scene at ``scene_path``), and the peak
+    memory those steps added beyond the scene itself."""
     small = dense_object(1000)
     small.means.requires_grad_(True)
     t0 = time.perf_counter()
     render(small, framing_camera(64)).image.sum().backward()
     first = time.perf_counter() - t0
 
-    scene = dense_object(n)
+    scene, cam = real_view(scene_path, size, view) if scene_path else (dense_object(n), framing_camera(size))
     for t in scene.tensors().values():
         t.requires_grad_(True)
-    cam = framing_camera(size)
     target = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
     gc.collect()
     before = _peak_rss_bytes()
@@ -113,14 +123,17 @@ def measure(n: int, size: int, repeats: int) -> dict[str, float]:
         "fwd": statistics.median(fwd[1:]),
         "total": statistics.median(total[1:]),
         "peak_mib": (_peak_rss_bytes() - before) / 2**20,
+        "count": len(scene),
         "visible": result.aux["num_visible"],
         "pairs": result.aux["num_intersections"],
     }
 
 
-def _run_case(n: int, size: int, args: argparse.Namespace, env: dict[str, str] | None = None) -> dict[str, float]:
+def _run_case(
+    n: int, size: int, args: argparse.Namespace, env: dict[str, str] | None = None, scene: str | None = None
+) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--case", str(n), str(size), "--repeats", str(args.repeats)]
-    cmd += ["--threads", str(args.threads)]
+    cmd += ["--threads", str(args.threads), "--view", str(args.view)] + (["--scene", scene] if scene else [])
     done = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -131,13 +144,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="image sizes (square)")
     parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000, 200_000], help="Gaussian counts")
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats per case (median reported)")
+    parser.add_argument("--scene", action="append", default=[], help="also time a real scene (.ply), any number")
+    parser.add_argument("--view", type=int, default=0, choices=range(8), help="which of 8 orbit views of --scene")
     parser.add_argument("--case", type=int, nargs=2, metavar=("N", "SIZE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     torch.set_num_threads(args.threads)
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     if args.case:
-        print(json.dumps(measure(*args.case, args.repeats)))
+        print(json.dumps(measure(*args.case, args.repeats, args.scene[0] if args.scene else None, args.view)))
         return 0
 
     # Each case runs in its own process so peak memory is its own and the first call shows the kernel start-up.
@@ -150,16 +165,17 @@ def main(argv: list[str] | None = None) -> int:
           f"OMP_WAIT_POLICY {wait}")
     print(f"first render + backward in a fresh process: {cold:.1f} s compiling the kernels, {warm:.2f} s from cache")
     print()
-    print("| Gaussians | image | visible | tile pairs | forward (s) | forward + backward (s) | peak memory (MiB) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
-    for size in args.sizes:
-        for n in args.counts:
-            m = _run_case(n, size, args)
-            print(
-                f"| {n:,} | {size}x{size} | {m['visible']:,} | {m['pairs']:,} | {m['fwd']:.3f} | {m['total']:.3f} "
-                f"| {m['peak_mib']:.0f} |"
-            )
-            sys.stdout.flush()
+    print("| scene | Gaussians | image | visible | tile pairs | forward (s) | forward + backward (s) | peak MiB |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    cases = [("dense ellipsoid", n, size, None) for size in args.sizes for n in args.counts]
+    cases += [(f"{Path(path).name}, view {args.view}", 0, size, path) for path in args.scene for size in args.sizes]
+    for name, n, size, path in cases:
+        m = _run_case(n, size, args, scene=path)
+        print(
+            f"| {name} | {m['count']:,} | {size}x{size} | {m['visible']:,} | {m['pairs']:,} | {m['fwd']:.3f} "
+            f"| {m['total']:.3f} | {m['peak_mib']:.0f} |"
+        )
+        sys.stdout.flush()
     return 0
 
 

@@ -23,7 +23,7 @@ def render_cpu(
     binning = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size)
     out, alpha = composite(proj.means2d, proj.conics, feats, proj.opacity, bg, binning)
     visible = torch.from_numpy(binning.visible).to(scene.device)
-    radii = torch.where(visible, proj.radii, torch.zeros_like(proj.radii)).to(torch.int32)
+    radii = torch.where(visible, proj.radii, torch.zeros_like(proj.radii)).clamp(max=2**31 - 1).to(torch.int32)
     return RenderResult(
         image=out[..., :3].clamp(0.0, 1.0),
         alpha=alpha,

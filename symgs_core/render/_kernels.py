@@ -63,12 +63,12 @@ def bin_gaussians(means2d, radii, depths, width, height, tile_size):
         r = radii[g]
         u = means2d[g, 0]
         v = means2d[g, 1]
-        # Pixel j is inside when |j + 0.5 - u| <= r.
-        x0 = max(math.ceil(u - r - 0.5), 0)
-        x1 = min(math.floor(u + r - 0.5), width - 1)
-        y0 = max(math.ceil(v - r - 0.5), 0)
-        y1 = min(math.floor(v + r - 0.5), height - 1)
-        if r <= 0 or x0 > x1 or y0 > y1:
+        # Pixel j is inside when |j + 0.5 - u| <= r; bounds are clipped as floats so huge values convert safely.
+        x0 = max(math.ceil(max(u - r - 0.5, -1.0)), 0)
+        x1 = min(math.floor(min(u + r - 0.5, width)), width - 1)
+        y0 = max(math.ceil(max(v - r - 0.5, -1.0)), 0)
+        y1 = min(math.floor(min(v + r - 0.5, height)), height - 1)
+        if not r > 0 or x0 > x1 or y0 > y1:
             x0, x1, y0, y1 = 1, 0, 1, 0
         else:
             visible[count] = g

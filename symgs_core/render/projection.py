@@ -31,7 +31,7 @@ class Projection:
     means2d  [N, 2]  pixel coordinates of the centres (pixel centres at +0.5)
     conics   [N, 3]  inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + c dy^2) - b dx dy
     depths   [N]     camera-space z
-    radii    [N]     3-sigma radius in pixels (whole numbers, no gradient); 0 behind the near plane
+    radii    [N]     3-sigma radius in pixels (whole numbers, no gradient); 0 behind the near plane or non-finite
     colors   [N, 3]  SH colour towards the camera
     opacity  [N]     activated opacity
     """
@@ -88,7 +88,9 @@ def project(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
     with torch.no_grad():
         mid = 0.5 * (a + c)
         radii = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))))
-        radii = torch.where(in_front & (det > 0), radii, torch.zeros_like(radii))
+        # Non-finite rows (NaN means, infinite scales) are culled rather than allowed to poison the image.
+        valid = in_front & (det > 0) & torch.isfinite(radii) & torch.isfinite(means2d).all(-1)
+        radii = torch.where(valid, radii, torch.zeros_like(radii))
 
     dirs = scene.means - camera.center.to(device=device, dtype=dtype)
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)

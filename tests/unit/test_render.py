@@ -164,6 +164,21 @@ def test_default_background_is_black_and_culled_scene_still_backpropagates() -> 
     assert torch.equal(scene.means.grad, torch.zeros_like(scene.means))
 
 
+def test_non_finite_gaussians_are_culled_and_huge_ones_stay_finite() -> None:
+    scene = random_scene(40, 1, seed=9)
+    broken = random_scene(3, 1, seed=10)
+    broken.means[0, 0] = float("nan")
+    broken.scales[1] = 1e4  # exp overflows to inf
+    broken.scales[2] = 30.0  # finite, but its radius is about 1e15 pixels, beyond int32
+    cam = make_camera()
+    result = render(GaussianScene.cat([scene, broken]), cam)
+    assert torch.isfinite(result.image).all() and torch.isfinite(result.alpha).all()
+    assert result.aux["radii"][-3:-1].tolist() == [0, 0] and result.aux["radii"][-1] == 2**31 - 1  # saturated
+    # Dropping the two broken rows changes nothing: they were culled.
+    kept = GaussianScene.cat([scene, broken.select(torch.tensor([2]))])
+    assert torch.equal(render(kept, cam).image, result.image)
+
+
 def test_single_gaussian_peaks_at_its_centre_with_exact_values() -> None:
     width, height, distance, sigma = 33, 31, 3.0, 0.05
     cam = Camera.look_at((0.0, -distance, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 40.0, width, height)
