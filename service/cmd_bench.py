@@ -11,7 +11,8 @@ from .cli import CliError
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark presets and peers on scenes: CSV, Markdown and two PNG charts")
     p.add_argument("scenes", type=Path, nargs="+", help="scenes (.ply)")
-    p.add_argument("--presets", default="small,balanced,high", help="comma-separated presets (default all lossy)")
+    p.add_argument("--presets", default="small,balanced,high",
+                   help="comma-separated presets (default all lossy; empty: only the peers and the matched run)")
     p.add_argument("--mirrors", choices=["both", "on", "off"], default="both", help="runs with and/or without mirrors")
     p.add_argument("--out", type=Path, default=Path("bench-out"), help="folder for bench.csv, bench.md and charts")
     p.add_argument("--no-peers", action="store_true", help="skip .spz, compressed PLY and SOG")

@@ -183,15 +183,17 @@ def decode_table(data: bytes, n: int, c: int, what: str) -> np.ndarray:
         offsets = np.array([_unzigzag(z) for z in reader.varints(c)], dtype=np.int64)
         table = _read_fixed(reader, n * c, what).reshape(n, c) + offsets
     elif kind == COLUMNS:
-        table = np.empty((n, c), dtype=np.int64)
+        columns = []
         for col in range(c):
             coder, transform = reader.byte(), reader.byte()
             if coder not in (ZSTD, ANS) or transform not in (RAW, DELTA):
                 raise ArchiveError("corrupt_section", f"{what}: column {col} has coder {coder} transform {transform}")
             (offset,) = reader.varints(1)
-            symbols = _read_fixed(reader, n, what) if coder == ZSTD else _read_ans(reader, n, what)
-            values = symbols + _unzigzag(offset)
-            table[:, col] = np.cumsum(values) if transform == DELTA else values
+            values = _read_fixed(reader, n, what) if coder == ZSTD else _read_ans(reader, n, what)
+            values += _unzigzag(offset)
+            columns.append(np.cumsum(values, out=values) if transform == DELTA else values)
+        # One column (the SH bands: millions of rows) is returned as it is, without a copy.
+        table = columns[0][:, None] if c == 1 else np.stack(columns, axis=1)
     else:
         raise ArchiveError("corrupt_section", f"{what}: unknown table kind {kind}")
     reader.done()

@@ -77,7 +77,7 @@ def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: st
 
 def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
     table = decode_table(payload, n, c, codec)
-    if table.size and int(np.abs(table).max()) >= MAX_LEVELS:
+    if table.size and max(-int(table.min()), int(table.max())) >= MAX_LEVELS:
         raise ArchiveError("corrupt_section", f"{codec}: a symbol lies beyond {MAX_LEVELS} grid cells")
     return table
 
@@ -293,5 +293,9 @@ class ShRestCodec:
             keep = per >= lvl
             width = (rows.stop - rows.start) * 3
             q = _symbols(parts[lvl], int(keep.sum()) * width, 1, self.name)
-            out[keep, rows, :] = (q * step).astype(np.float32).reshape(-1, rows.stop - rows.start, 3)
+            values = (q.astype(np.float32) * np.float32(step)).reshape(-1, rows.stop - rows.start, 3)
+            if len(values) == n:  # every Gaussian keeps this band: a slice, not a masked scatter
+                out[:, rows, :] = values
+            else:
+                out[keep, rows, :] = values
         return out
