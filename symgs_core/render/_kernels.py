@@ -3,7 +3,7 @@
 Inputs are projected Gaussians (float64, C-contiguous), N of them:
   means2d  [N, 2]  pixel coordinates (pixel centres at +0.5)
   conics   [N, 3]  inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + c dy^2) - b dx dy
-  feats    [N, D]  per-Gaussian channels to composite (RGB, plus depth when asked)
+  feats    [N, D]  per-Gaussian channels to composite (the CPU backend sends RGB and depth)
   opacity  [N]     activated opacity
   rects    [N, 4]  int32 (x0, x1, y0, y1): the pixels whose centre lies inside the 3-sigma box, clipped to the image
 

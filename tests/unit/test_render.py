@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 
+import numba
 import pytest
 import torch
 
@@ -141,6 +142,24 @@ def test_image_does_not_depend_on_tile_size() -> None:
     _, g5 = grads_of(scene, lambda s: render_cpu(s, cam, bg, deg, tile_size=5).image.sum())
     for name in ATTRIBUTES:
         torch.testing.assert_close(g5[name], g16[name], rtol=1e-9, atol=1e-12, msg=name)
+
+
+def test_gradients_have_the_same_bits_for_any_thread_count() -> None:
+    threads = numba.config.NUMBA_NUM_THREADS
+    if threads < 2:
+        pytest.skip("numba has a single thread on this machine")
+    scene = random_scene(150, 1, seed=12)
+    cam = make_camera()
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        _, single = grads_of(scene, lambda s: render(s, cam).image.square().sum())
+        numba.set_num_threads(threads)
+        _, multi = grads_of(scene, lambda s: render(s, cam).image.square().sum())
+    finally:
+        numba.set_num_threads(before)
+    for name in ATTRIBUTES:
+        assert torch.equal(single[name], multi[name]), name
 
 
 def test_empty_scene_renders_background() -> None:
