@@ -25,6 +25,14 @@ _CANCEL_POLL_S = 0.5  # should_stop is called often; ask Redis at most this ofte
 _PROGRESS_EVERY_S = 0.25  # progress reports within one stage and level are thinned to this rate
 
 
+class JobInputError(ValueError):
+    """A job the pipeline refuses before starting; ``code`` is machine-readable, as in PlyError."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
 class _Heartbeat(threading.Thread):
     """Renews the job's lease until stopped; ``lost`` is set when another worker took the job over."""
 
@@ -156,7 +164,10 @@ def _run_leased(
         return "skipped"  # cancelled between the checks
 
     folder = storage.job_dir(job_id)
-    config = CompressConfig(**record.params.pipeline_overrides(), device=device)
+    try:
+        config = CompressConfig(**record.params.pipeline_overrides(), device=device)
+    except ValueError as exc:  # a combination the schema's per-field bounds let through
+        raise JobInputError("bad_params", f"params: {exc}") from None
     images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
     stop = _StopCheck(store, job_id, heartbeat)
     try:
