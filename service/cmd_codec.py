@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-levels", type=int, default=4)
     p.add_argument("--iterations", type=int, default=200, help="optimisation steps per level")
     p.add_argument("--resolution", type=int, default=192, help="longest side of training/evaluation views")
-    p.add_argument("--train-views", type=int, default=24)
+    p.add_argument("--train-views", type=int, default=128)
     p.add_argument("--eval-views", type=int, default=8)
     p.add_argument("--no-mirrors", action="store_true", help="baseline: the codec alone")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

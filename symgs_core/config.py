@@ -35,7 +35,7 @@ class CompressConfig:
     nominal_psnr: float = 33.0
     max_levels: int = 4
     iterations: int = 200
-    train_views: int = 24
+    train_views: int = 128
     eval_views: int = 8
     resolution: int = 192
     device: DeviceChoice = "auto"

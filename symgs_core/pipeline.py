@@ -122,7 +122,9 @@ def compress(
         reference_psnr, _ = evaluate(source, views.test, background)
         floor = reference_psnr - config.psnr_budget
     else:
-        views = self_supervised_views(source, config.train_views, config.eval_views, config.resolution, background)
+        views = self_supervised_views(
+            source, config.train_views, config.eval_views, config.resolution, background, seed=config.seed
+        )
         reference_psnr, floor = math.inf, config.self_supervised_floor()
     report.timed("views", time.perf_counter() - t0)
 
