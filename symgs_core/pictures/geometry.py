@@ -45,9 +45,10 @@ def plane_box_polygon(
     if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi >= lo):
         raise ValueError(f"box corners must be 3-vectors with hi >= lo, got lo={lo.tolist()}, hi={hi.tolist()}")
     corners = lo + _CORNERS * (hi - lo)
-    d = corners @ n - offset
     scale = max(float(np.abs(hi - lo).max()), 1e-12)
-    points = [corners[i] for i in range(8) if abs(d[i]) <= 1e-12 * scale]
+    d = corners @ n - offset
+    d[np.abs(d) <= 1e-12 * scale] = 0.0  # corners on the plane are vertices; their edges then cross nowhere else
+    points = [corners[i] for i in range(8) if d[i] == 0.0]
     for a, b in _EDGES:
         if d[a] * d[b] < 0:
             points.append(corners[a] + (corners[b] - corners[a]) * (d[a] / (d[a] - d[b])))

@@ -73,7 +73,7 @@ class Watched:
     def _console(self, message) -> None:  # noqa: ANN001 - playwright ConsoleMessage
         # Chromium logs every 4xx; a 401 is how the dashboard learns that the server wants a key.
         if message.type == "error" and "status of 401" not in message.text:
-            self.errors.append(message.text)
+            self.errors.append(f"{message.text} ({message.location.get('url', '')})")
 
 
 _RECORD_PROGRESS = """() => {
@@ -93,6 +93,7 @@ _IMAGES_LOADED = """(minimum) => {
   const images = [...document.querySelectorAll("figure img")];
   return images.length >= minimum && images.every((img) => img.complete && img.naturalWidth > 0);
 }"""
+_IMAGES_DECODED = """() => Promise.all([...document.querySelectorAll("figure img")].map((img) => img.decode()))"""
 
 
 def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Path, tmp_path: Path) -> None:  # noqa: ANN001
@@ -137,6 +138,12 @@ def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Pat
     assert row.locator(".pct").inner_text() == "100%"
     page.screenshot(path=tmp_path / "jobs.png", full_page=True)
 
+    page.select_option("#state-filter", "failed")
+    page.locator("#jobs-empty").wait_for(state="visible", timeout=10_000)
+    assert page.url.endswith("?state=failed") and row.count() == 0
+    page.select_option("#state-filter", "succeeded")
+    row.wait_for(timeout=10_000)
+
     row.locator("a").click()
     page.wait_for_url(f"{stack.api_url}/jobs/{job_id}")
     page.locator("#metrics-section").wait_for(state="visible", timeout=10_000)
@@ -157,6 +164,7 @@ def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Pat
         page.get_by_role("link", name="Compressed archive (.symgs)").click()
     assert Path(download.value.path()).read_bytes() == archive
     assert page.locator("#cancel").is_hidden()
+    page.evaluate(_IMAGES_DECODED)
     page.screenshot(path=tmp_path / "job.png", full_page=True)
 
     assert watched.foreign == [], "the dashboard asked another origin"

@@ -21,7 +21,8 @@ const jobId = decodeURIComponent(location.pathname.split("/").pop());
 const jobPath = `/v1/jobs/${encodeURIComponent(jobId)}`;
 const $ = (id) => document.getElementById(id);
 const CHARTS = {
-  rate_distortion: "Rate and distortion: PSNR against archive size for the baseline, each mirror level and the final archive",
+  rate_distortion:
+    "Rate and distortion: PSNR against archive size for the input, each mirror level, each later stage and the final archive",
   speed_accuracy: "Speed and accuracy: PSNR against the seconds since the job started, stage by stage",
 };
 const STEP = /step (\d+)\/(\d+)/; // the pipeline's level messages: "level 0: step 80/200 loss 0.0123"
@@ -129,7 +130,10 @@ function showJob(job) {
   fact(facts, "Job", job.id);
   fact(facts, "Scene", `${formatBytes(job.scene.bytes)}, ${job.scene.gaussians} Gaussians, SH degree ${job.scene.sh_degree}`);
   fact(facts, "Images", job.images ? `${job.images.images} (${job.images.layout})` : "none: judged against renders of the input");
-  fact(facts, "Settings", `${p.preset}, PSNR budget ${p.psnr_budget} dB, at most ${p.max_levels} levels, device ${p.device}`);
+  // Parameters left out take the pipeline's defaults (which may depend on the preset).
+  const set = Object.entries(p).filter(([name, value]) => value != null && name !== "device");
+  const settings = set.map(([name, value]) => `${name.replaceAll("_", " ")} ${value}`).join(", ");
+  fact(facts, "Settings", `${settings || "the server's defaults"}; device ${p.device}`);
   fact(facts, "Queue", job.queue);
   fact(facts, "Created", formatTime(job.created_at));
   if (job.started_at) fact(facts, "Started", formatTime(job.started_at));
@@ -141,7 +145,7 @@ function row(table, label, value) {
   table.append(el("tr", {}, el("th", { scope: "row" }, label), el("td", { className: "num" }, value)));
 }
 
-function showMetrics(report) {
+function showMetrics(job, report) {
   const t = document.querySelector("#metrics tbody");
   t.replaceChildren();
   row(t, "Input (PLY)", report.input_bytes ? formatBytes(report.input_bytes) : "\u2013");
@@ -156,12 +160,9 @@ function showMetrics(report) {
   row(t, "Device", report.device);
   const s = document.querySelector("#seconds tbody");
   s.replaceChildren();
-  let total = 0;
-  for (const [stage, seconds] of Object.entries(report.seconds)) {
-    row(s, stage, formatSeconds(seconds));
-    total += seconds;
-  }
-  row(s, "total", formatSeconds(total));
+  for (const [stage, seconds] of Object.entries(report.seconds)) row(s, stage, formatSeconds(seconds));
+  // Stages may nest (encoding times its reductions too), so the wall time is the job's, not a sum.
+  if (job.started_at && job.finished_at) row(s, "wall time of the job", formatSeconds(job.finished_at - job.started_at));
   $("metrics-section").hidden = false;
 }
 
@@ -210,7 +211,7 @@ function pictureCaption(name) {
 
 async function figure(container, name) {
   const caption = pictureCaption(name);
-  const img = el("img", { alt: caption, "data-name": name, decoding: "async" });
+  const img = el("img", { alt: caption, "data-name": name });
   container.append(el("figure", {}, img, el("figcaption", {}, caption)));
   try {
     img.src = await blobUrl(`${jobPath}/charts/${encodeURIComponent(name)}.png`);
@@ -274,7 +275,7 @@ async function showResults(job) {
   resultsShown = true;
   try {
     const report = await api(`${jobPath}/report`);
-    showMetrics(report);
+    showMetrics(job, report);
     showMirrors(report);
   } catch (err) {
     $("job-status").textContent = `Could not load the report: ${err.message}`;

@@ -60,6 +60,9 @@ function newRow(job) {
     psnr: el("td", { className: "num" }),
     age: el("td", { className: "age" }),
   };
+  // On a narrow screen each row is a card: its cells name their column themselves (see style.css).
+  const headers = document.querySelectorAll("#jobs thead th");
+  Object.values(cells).forEach((td, i) => td.setAttribute("data-label", headers[i].textContent));
   const tr = el("tr", { "data-job-id": job.id }, ...Object.values(cells));
   return { tr, cells, bar: progress.bar, pct: progress.text, time: 0, created: job.created_at };
 }
@@ -165,12 +168,28 @@ function showPage(page) {
   syncStreams();
 }
 
-let loading = null;
-async function load() {
-  if (loading) return loading;
+let loading = null; // the page request in flight
+let queued = null; // one more request, to start when that one ends
+// Show the current page; the promise resolves with a list fetched after this call (a request already in flight
+// may predate a job just submitted, or a filter just chosen).
+function load() {
+  if (!loading) {
+    loading = fetchPage().finally(() => {
+      loading = null;
+    });
+    return loading;
+  }
+  queued ??= loading.then(() => {
+    queued = null;
+    return load();
+  });
+  return queued;
+}
+
+function fetchPage() {
   const params = new URLSearchParams({ offset: String(view.offset), limit: String(LIMIT) });
   if (view.state) params.set("state", view.state);
-  loading = api(`/v1/jobs?${params}`)
+  return api(`/v1/jobs?${params}`)
     .then((page) => {
       listStatus.textContent = "";
       showPage(page);
@@ -182,11 +201,7 @@ async function load() {
       } else {
         listStatus.textContent = `Could not load jobs: ${err.message}`;
       }
-    })
-    .finally(() => {
-      loading = null;
     });
-  return loading;
 }
 
 function params(form) {
