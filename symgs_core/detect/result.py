@@ -1,0 +1,55 @@
+"""A detected mirror and the membership of the working set it was found in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+from ..mirror import Plane
+
+
+@dataclass
+class Mirror:
+    """One mirror, in the coordinates of the scene given to ``detect``.
+
+    plane     n.x = offset, normal canonical (its largest-magnitude component positive)
+    votes     raw votes in the 3x3x3 cells around the accumulator peak
+    left      [L] indices of the Gaussians kept and reflected
+    right     [R] indices of the Gaussians the reflected left ones cover (dropped)
+    out       [O] the rest of this level's working set
+    coverage  (|left| + |right|) / working set size
+    level     0 for the first mirror; level l was searched in the left and out sets of level l - 1
+    timings   seconds per step
+    """
+
+    plane: Plane
+    votes: int
+    left: Tensor
+    right: Tensor
+    out: Tensor
+    coverage: float
+    level: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def normal(self) -> tuple[float, float, float]:
+        return self.plane.normal
+
+    @property
+    def offset(self) -> float:
+        return self.plane.offset
+
+    def summary(self) -> dict:
+        """JSON-ready description; membership as counts."""
+        return {
+            "level": self.level,
+            "normal": list(self.plane.normal),
+            "offset": self.plane.offset,
+            "votes": self.votes,
+            "left": int(self.left.numel()),
+            "right": int(self.right.numel()),
+            "out": int(self.out.numel()),
+            "coverage": self.coverage,
+            "timings": dict(self.timings),
+        }

@@ -1,0 +1,199 @@
+"""Mirror search, level by level: cluster, vote, find and refine the peak, then match the two sides."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from ..mirror import Plane
+from ..scene import GaussianScene
+from .clusters import Clusters, attributes, cluster
+from .config import DetectConfig
+from .frame import normalised_frame
+from .grid import GridSpec, top_peaks
+from .membership import Matcher, Sides
+from .pairs import Axes, axes_agree, candidate_pairs, distinct_axes
+from .refine import refine_from_pairs
+from .result import Mirror
+
+_MAX_OFFSET = 1.0  # planes farther than the robust radius from the centre cut off (almost) nothing
+_REFINE_WINDOW = 2  # cells around the peak whose votes feed the refinement
+_SUPPRESS_WINDOW = 4  # cells around a rejected peak cleared before the next candidate
+_SAME_PLANE_CELLS = 4  # a candidate this many cells from a known mirror is that mirror again
+_SPARE_PEAKS = 2  # extra peaks per known mirror: it may come back as a peak or two
+_CHANCE_PLANES = 6  # random planes that measure how much matches by chance
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._t = time.perf_counter()
+
+    def lap(self, step: str) -> None:
+        now = time.perf_counter()
+        self.seconds[step] += now - self._t
+        self._t = now
+
+
+def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude: Sequence[Plane] = ()) -> list[Mirror]:
+    """Mirrors of ``scene``, most dominant first, with the membership of each level's working set.
+
+    Level 0 searches the whole scene; level l searches the left and out sets of level l - 1 (what the hierarchy
+    keeps). Indices in every ``Mirror`` refer to ``scene``. Stops at ``max_mirrors``, when the working set is
+    smaller than ``min_gaussians``, or when no candidate peak reaches ``min_coverage``. A plane found at one level,
+    or listed in ``exclude`` (mirrors of earlier levels, when the caller runs one level at a time), is not reported
+    again: the parts of the scene it failed to match would otherwise make it come back. Non-finite Gaussians are
+    never members. Runs on the scene's device (the KD-tree matching on the CPU).
+    """
+    config = config or DetectConfig()
+    known = list(exclude)
+    finite = torch.ones(len(scene), dtype=torch.bool, device=scene.device)
+    for t in (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats):
+        finite &= torch.isfinite(t).all(dim=1)
+    working = torch.nonzero(finite)[:, 0]
+    mirrors: list[Mirror] = []
+    for level in range(config.max_mirrors):
+        if working.numel() < config.min_gaussians:
+            break
+        found = _detect_level(scene.select(working), config, level, known)
+        if found is None:
+            break
+        plane, votes, sides, timings = found
+        is_out = torch.ones(working.numel(), dtype=torch.bool, device=working.device)
+        is_out[sides.left] = False
+        is_out[sides.right] = False
+        coverage = (sides.left.numel() + sides.right.numel()) / working.numel()
+        left, right, out = working[sides.left], working[sides.right], working[is_out]
+        mirrors.append(Mirror(plane, votes, left, right, out, coverage, level, timings))
+        known.append(plane)
+        working = torch.sort(torch.cat([left, out])).values
+    return mirrors
+
+
+def _detect_level(
+    scene: GaussianScene, config: DetectConfig, level: int, known: list[Plane]
+) -> tuple[Plane, int, Sides, dict[str, float]] | None:
+    clock = _Clock()
+    frame = normalised_frame(scene.means.float(), config.radius_quantile)
+    if frame is None:
+        return None
+    x = frame.to_local(scene.means.float())
+    clock.lap("frame")
+    attrs = attributes(scene)
+    groups = cluster(attrs, config.colour_bins, config.opacity_bins, config.scale_bins)
+    clock.lap("cluster")
+    spec = GridSpec(config.angle_res, config.offset_res, _MAX_OFFSET)
+    axes = distinct_axes(scene, config.axis_ratio)
+    votes_cell, votes_i, votes_j = _vote(x, groups, axes, spec, config, level, clock)
+    peaks = top_peaks(votes_cell, spec, config.candidates + _SPARE_PEAKS * len(known), _SUPPRESS_WINDOW)
+    clock.lap("peak")
+    vote_coords = spec.unravel(votes_cell.long()).to(torch.int32)  # [V, 3]
+    n_points = x.shape[0]
+    matcher: Matcher | None = None
+    chance: float | None = None
+    tried = 0
+    for coord, peak_votes in peaks:
+        if tried == config.candidates:
+            break
+        normal, offset = spec.plane(coord)
+        near = (vote_coords - coord.to(vote_coords)).abs().amax(dim=1) <= _REFINE_WINDOW
+        xi, xj = x[votes_i[near].long()], x[votes_j[near].long()]
+        normal, offset = refine_from_pairs(
+            xi, xj, normal, offset, config.angle_res, config.offset_res, config.refine_iters
+        )
+        normal, offset = _canonical(normal, offset)
+        clock.lap("refine")
+        if any(_same_plane(normal, offset, frame.plane_to_local(p), config) for p in known):
+            continue
+        tried += 1
+        if matcher is None:
+            matcher = Matcher(
+                x, attrs, axes, tolerance=config.match_tolerance, attribute_weight=config.attribute_weight
+            )
+        if config.icp_iters:
+            normal, offset = _canonical(*matcher.refine(normal, offset, config.icp_iters))
+        clock.lap("refine")
+        sides = matcher.sides(normal, offset)
+        coverage = (sides.left.numel() + sides.right.numel()) / n_points
+        if coverage >= config.min_coverage and chance is None:
+            chance = matcher.chance_rate(_CHANCE_PLANES, config.seed + level)
+        significant = coverage >= config.min_coverage and matcher.match_rate(normal, offset) >= (
+            config.min_significance * chance
+        )
+        clock.lap("membership")
+        if significant and sides.left.numel():
+            world_n, world_g = frame.plane_to_world(normal.to(frame.centre.dtype).to(frame.centre.device), offset)
+            return Plane.from_tensor(world_n, world_g), peak_votes, sides, dict(clock.seconds)
+    return None
+
+
+def _vote(
+    x: Tensor,
+    groups: Clusters,
+    axes: Axes,
+    spec: GridSpec,
+    config: DetectConfig,
+    level: int,
+    clock: _Clock,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The votes of the candidate pairs: per vote, its flat cell [V] and its pair (i [V], j [V])."""
+    device = x.device
+    gen = torch.Generator(device=device).manual_seed(config.seed + level)
+    pi, pj, _, _ = candidate_pairs(groups, config.pair_budget, config.enumerate_share, gen)
+    prune = config.axis_tolerance is not None
+    min_cos = math.cos(config.axis_tolerance) if prune else 0.0
+    max_d2 = math.inf if config.max_pair_distance is None else config.max_pair_distance**2
+    clock.lap("pairs")
+    cells, vi, vj = [], [], []
+    for s in range(0, pi.numel(), config.chunk):
+        a, b = pi[s : s + config.chunk], pj[s : s + config.chunk]
+        xa, xb = x.index_select(0, a), x.index_select(0, b)
+        diff = xa - xb
+        length2 = torch.einsum("ij,ij->i", diff, diff)
+        ok = (length2 > 1e-12) & (length2 <= max_d2)  # coincident Gaussians define no plane
+        if prune:
+            u, r = axes.u, axes.round
+            ok &= axes_agree(
+                diff,
+                length2,
+                u.index_select(0, a),
+                u.index_select(0, b),
+                r.index_select(0, a),
+                r.index_select(0, b),
+                min_cos,
+            )
+        keep = torch.nonzero(ok)[:, 0]
+        a, b = a[keep], b[keep]
+        normal = diff[keep] * torch.rsqrt(length2[keep])[:, None]
+        offset = torch.einsum("ij,ij->i", normal, xa[keep] + xb[keep]) / 2
+        cell, source = spec.cells(normal, offset)
+        cells.append(cell.int())
+        vi.append(a[source].int())
+        vj.append(b[source].int())
+    clock.lap("vote")
+    empty = torch.zeros(0, dtype=torch.int32, device=device)
+    cat = lambda parts: torch.cat(parts) if parts else empty  # noqa: E731
+    return cat(cells), cat(vi), cat(vj)
+
+
+def _same_plane(normal: Tensor, offset: float, other: tuple[Tensor, float], config: DetectConfig) -> bool:
+    """Whether two planes of the normalised frame are within a few accumulator cells of each other."""
+    n2, g2 = other
+    cos = float(normal.to(torch.float64) @ n2.to(torch.float64))
+    sign = 1.0 if cos >= 0 else -1.0
+    angle = math.acos(min(1.0, abs(cos)))
+    return (
+        angle <= _SAME_PLANE_CELLS * config.angle_res
+        and abs(offset - sign * g2) <= _SAME_PLANE_CELLS * config.offset_res
+    )
+
+
+def _canonical(normal: Tensor, offset: float) -> tuple[Tensor, float]:
+    """The same plane with the normal's largest-magnitude component positive (as ``Plane.canonical``)."""
+    axis = int(normal.abs().argmax())
+    return (normal, offset) if normal[axis] >= 0 else (-normal, -offset)

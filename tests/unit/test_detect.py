@@ -1,0 +1,216 @@
+"""Mirror detection on synthetic scenes with planted mirrors, on degenerate inputs, and on a real capture."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from symgs_core.detect import DetectConfig, Mirror, detect
+from symgs_core.detect.frame import normalised_frame
+from symgs_core.mirror import Plane, reflect
+from symgs_core.scene import GaussianScene
+from symgs_core.synthetic import Pose, synthetic_scene
+from tests.conftest import shared_file
+
+
+def angle_deg(a: Plane, b: Plane) -> float:
+    cos = abs(sum(x * y for x, y in zip(a.normal, b.normal, strict=True)))
+    return math.degrees(math.acos(min(1.0, cos)))
+
+
+def offset_gap(a: Plane, b: Plane, point: torch.Tensor) -> float:
+    """Difference of the signed distances of ``point`` to the two planes (normals aligned)."""
+    p = point.double()
+    da = float(torch.tensor(a.normal, dtype=torch.float64) @ p) - a.offset
+    db = float(torch.tensor(b.normal, dtype=torch.float64) @ p) - b.offset
+    aligned = sum(x * y for x, y in zip(a.normal, b.normal, strict=True)) >= 0
+    return abs(da - (db if aligned else -db))
+
+
+def precision_recall(m: Mirror, left: torch.Tensor, right: torch.Tensor) -> tuple[float, float]:
+    """Of the found left/right against the planted halves, whichever way round the detector kept them."""
+    fl, fr = set(m.left.tolist()), set(m.right.tolist())
+    gl, gr = set(left.tolist()), set(right.tolist())
+    if len(fl & gr) > len(fl & gl):
+        gl, gr = gr, gl
+    hits = len(fl & gl) + len(fr & gr)
+    return hits / max(len(fl) + len(fr), 1), hits / (len(gl) + len(gr))
+
+
+def assert_partition(m: Mirror, working: set[int]) -> None:
+    left, right, out = set(m.left.tolist()), set(m.right.tolist()), set(m.out.tolist())
+    assert len(left) == len(m.left) and len(right) == len(m.right) and len(out) == len(m.out)
+    assert not (left & right) and not (left & out) and not (right & out)
+    assert left | right | out == working
+    assert math.isclose(m.coverage, (len(left) + len(right)) / len(working))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_global_mirror_recovered_under_clutter_noise_and_any_pose(seed: int) -> None:
+    pose = Pose.random(100 + seed, scale_range=(0.05, 20.0), max_shift=50.0)
+    s = synthetic_scene("global", n=3000, seed=seed, sh_degree=1, clutter=0.5, noise=0.004, pose=pose)
+    mirrors = detect(s.scene, DetectConfig(max_mirrors=1))
+    assert len(mirrors) == 1
+    frame = normalised_frame(s.scene.means, 0.99)
+    assert angle_deg(mirrors[0].plane, s.planes[0]) < 0.5
+    assert offset_gap(mirrors[0].plane, s.planes[0], frame.centre) < 0.005 * frame.radius
+    assert mirrors[0].plane == mirrors[0].plane.canonical()
+
+
+def test_real_capture_halves_still_give_the_plane() -> None:
+    s = synthetic_scene("global", n=4000, seed=3, capture="independent", clutter=0.2, noise=0.002, pose=Pose.random(3))
+    (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
+    frame = normalised_frame(s.scene.means, 0.99)
+    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    assert offset_gap(m.plane, s.planes[0], frame.centre) < 0.005 * frame.radius
+    precision, recall = precision_recall(m, s.left[0], s.right[0])
+    assert precision > 0.9 and recall > 0.5
+    assert m.coverage > 0.4
+
+
+def test_exact_twins_give_the_planted_halves() -> None:
+    s = synthetic_scene("global", n=4000, seed=5, sh_degree=2, clutter=0.1, pose=Pose.random(5))
+    (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
+    assert_partition(m, set(range(len(s.scene))))
+    precision, recall = precision_recall(m, s.left[0], s.right[0])
+    assert precision >= 0.95 and recall >= 0.95
+    # Left is kept and reflected: its reflection lands on the right half.
+    mirrored = reflect(s.scene.select(m.left), *m.plane.tensor()).means
+    nearest = torch.cdist(mirrored, s.scene.means[m.right]).min(dim=1).values
+    assert float(nearest.median()) < 1e-3 * normalised_frame(s.scene.means, 0.99).radius
+
+
+def test_two_local_mirrors_found_larger_first_with_their_halves() -> None:
+    s = synthetic_scene("local", n=5000, seed=1, clutter=0.1, pose=Pose.random(1))
+    mirrors = detect(s.scene, DetectConfig(max_mirrors=2))
+    assert len(mirrors) == 2
+    for m, plane, left, right in zip(mirrors, s.planes, s.left, s.right, strict=True):
+        assert angle_deg(m.plane, plane) < 0.5
+        precision, recall = precision_recall(m, left, right)
+        assert precision >= 0.95 and recall >= 0.95
+    assert len(mirrors[0].left) > len(mirrors[1].left)
+    # Level 1 searched what level 0 kept.
+    assert mirrors[1].level == 1
+    kept = set(mirrors[0].left.tolist()) | set(mirrors[0].out.tolist())
+    assert_partition(mirrors[1], kept)
+
+
+def test_nested_mirror_found_inside_the_kept_half() -> None:
+    s = synthetic_scene("nested", n=5000, seed=1, clutter=0.1)
+    mirrors = detect(s.scene, DetectConfig(max_mirrors=2))
+    assert len(mirrors) == 2
+    assert angle_deg(mirrors[0].plane, s.planes[0]) < 0.5
+    # The local mirror lies in whichever half was kept: the planted one, or its reflection across the global plane.
+    local = s.planes[1]
+    n, g = local.tensor(dtype=torch.float64)
+    gn, gg = s.planes[0].tensor(dtype=torch.float64)
+    twin_n = n - 2 * (n @ gn) * gn
+    twin = Plane.from_tensor(twin_n, g - 2 * (n @ gn) * gg)
+    assert min(angle_deg(mirrors[1].plane, local), angle_deg(mirrors[1].plane, twin)) < 0.5
+    assert set(mirrors[1].left.tolist()) <= set(mirrors[0].left.tolist()) | set(mirrors[0].out.tolist())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_no_symmetry_no_mirror(seed: int) -> None:
+    s = synthetic_scene("asymmetric", n=4000, seed=seed, clutter=0.2)
+    assert detect(s.scene) == []
+
+
+def _scene(means: torch.Tensor, colour: torch.Tensor | None = None) -> GaussianScene:
+    n = means.shape[0]
+    g = torch.Generator().manual_seed(0)
+    return GaussianScene(
+        means=means,
+        quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
+        scales=torch.full((n, 3), -4.0),
+        opacities=torch.zeros(n),
+        sh_dc=torch.zeros(n, 3) if colour is None else colour.expand(n, 3),
+        sh_rest=torch.zeros(n, 0, 3),
+    )
+
+
+@pytest.mark.parametrize(
+    "means",
+    [
+        torch.zeros(0, 3),
+        torch.tensor([[1.0, 2.0, 3.0]]),
+        torch.tensor([[1.0, 2.0, 3.0]]).repeat(500, 1),
+        torch.cat([torch.rand(800, 2, generator=torch.Generator().manual_seed(1)), torch.zeros(800, 1)], dim=1),
+        torch.rand(800, 3, generator=torch.Generator().manual_seed(2)),
+    ],
+    ids=["empty", "one", "identical", "one-plane", "uniform"],
+)
+def test_degenerate_inputs_return_cleanly(means: torch.Tensor) -> None:
+    mirrors = detect(_scene(means))
+    assert isinstance(mirrors, list)
+    if mirrors:
+        assert_partition(mirrors[0], set(range(len(means))))
+    for m in mirrors:
+        members = torch.cat([m.left, m.right, m.out])
+        assert members.unique().numel() == members.numel() and bool((members < len(means)).all())
+
+
+def test_one_colour_and_non_finite_gaussians() -> None:
+    s = synthetic_scene("global", n=3000, seed=2)
+    flat = s.scene.with_(sh_dc=torch.zeros_like(s.scene.sh_dc), opacities=torch.zeros_like(s.scene.opacities))
+    (m,) = detect(flat, DetectConfig(max_mirrors=1))
+    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    broken = s.scene.means.clone()
+    broken[:10] = float("nan")
+    (m,) = detect(s.scene.with_(means=broken), DetectConfig(max_mirrors=1))
+    assert not set(range(10)) & (set(m.left.tolist()) | set(m.right.tolist()) | set(m.out.tolist()))
+    assert angle_deg(m.plane, s.planes[0]) < 0.5
+
+
+def test_result_does_not_depend_on_order_and_is_deterministic() -> None:
+    s = synthetic_scene("global", n=3000, seed=8, clutter=0.3, noise=0.003)
+    a = detect(s.scene, DetectConfig(max_mirrors=1))[0]
+    b = detect(s.scene, DetectConfig(max_mirrors=1))[0]
+    assert a.plane == b.plane and torch.equal(a.left, b.left)
+    perm = torch.randperm(len(s.scene), generator=torch.Generator().manual_seed(0))
+    c = detect(s.scene.select(perm), DetectConfig(max_mirrors=1))[0]
+    assert angle_deg(a.plane, c.plane) < 0.05
+    assert abs(len(perm[c.left]) - len(a.left)) <= 0.01 * len(a.left)
+
+
+def test_exclude_skips_known_planes() -> None:
+    s = synthetic_scene("local", n=4000, seed=2)
+    first = detect(s.scene, DetectConfig(max_mirrors=1))[0]
+    again = detect(s.scene, DetectConfig(max_mirrors=1), exclude=[first.plane])
+    assert again and angle_deg(again[0].plane, first.plane) > 5
+
+
+def test_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError, match="angle_res"):
+        DetectConfig(angle_res=0.0)
+    with pytest.raises(ValueError, match="min_coverage"):
+        DetectConfig(min_coverage=1.5)
+    with pytest.raises(ValueError, match="pair_budget"):
+        DetectConfig(pair_budget=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_same_code_on_cuda() -> None:
+    s = synthetic_scene("global", n=3000, seed=0, clutter=0.3)
+    (cpu,) = detect(s.scene, DetectConfig(max_mirrors=1))
+    (gpu,) = detect(s.scene.to("cuda"), DetectConfig(max_mirrors=1))
+    assert angle_deg(cpu.plane, gpu.plane) < 0.05
+    assert gpu.left.device.type == "cuda"
+
+
+@pytest.mark.realdata
+def test_playbot_left_right_plane() -> None:
+    from symgs_core.ply import load_scene
+
+    scene = load_scene(shared_file("playbot_cc_by_sa3d/playbot_lod2_125k_sh2.ply"))
+    (m,) = detect(scene, DetectConfig(max_mirrors=1))
+    x_plane = Plane((1.0, 0.0, 0.0), 0.0)
+    assert angle_deg(m.plane, x_plane) < 2.0
+    frame = normalised_frame(scene.means, 0.99)
+    # The plane passes within 1% of the radius of the median of the means.
+    assert (
+        abs(float(torch.tensor(m.normal, dtype=torch.float64) @ frame.centre.double()) - m.offset) < 0.01 * frame.radius
+    )
+    assert m.coverage >= 0.3

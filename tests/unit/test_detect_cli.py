@@ -1,0 +1,54 @@
+"""`symgs detect` through the command line's entry point."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service.cli import main
+from symgs_core.ply import save_scene
+from symgs_core.synthetic import synthetic_scene
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object]:
+    s = synthetic_scene("local", n=3000, seed=1, sh_degree=1)
+    path = tmp_path_factory.mktemp("detect") / "local.ply"
+    save_scene(s.scene, path)
+    return path, s
+
+
+def test_json_output_parses_with_counts(scene_file, capsys: pytest.CaptureFixture[str]) -> None:
+    path, s = scene_file
+    assert main(["detect", str(path), "--json", "--max-mirrors", "2"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["gaussians"] == len(s.scene)
+    assert len(report["mirrors"]) == 2
+    for m, planted in zip(report["mirrors"], s.planes, strict=True):
+        assert set(m) >= {"normal", "offset", "votes", "left", "right", "coverage", "level", "timings"}
+        assert isinstance(m["left"], int) and isinstance(m["right"], int)
+        cos = abs(sum(a * b for a, b in zip(m["normal"], planted.normal, strict=True)))
+        assert cos > 0.9999
+    first = report["mirrors"][0]
+    assert first["coverage"] == pytest.approx((first["left"] + first["right"]) / len(s.scene))
+    assert {"load", "detect", "vote", "membership"} <= set(report["timings"])
+
+
+def test_text_output_lists_mirrors_and_step_times(scene_file, capsys: pytest.CaptureFixture[str]) -> None:
+    path, _ = scene_file
+    assert main(["detect", str(path), "--max-mirrors", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "level 0: normal (" in out and "coverage" in out and "vote " in out
+
+
+def test_errors_are_user_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["detect", str(tmp_path / "missing.ply")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    broken = tmp_path / "broken.ply"
+    broken.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n")
+    assert main(["detect", str(broken)]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    assert main(["detect", str(broken), "--min-coverage", "2"]) == 2
+    assert "min_coverage" in capsys.readouterr().err
