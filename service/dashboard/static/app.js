@@ -71,14 +71,19 @@ const sleep = (ms, signal) =>
 // Parse one response body of Server-Sent Events; `dispatch({id, event, data})` returns true to stop reading.
 // Returns true when stopped that way, false when the server closed the stream.
 async function readEvents(body, dispatch) {
-  const reader = body.pipeThrough(new TextDecoderStream()).getReader();
+  const reader = body.getReader();
+  const decoder = new TextDecoder();
   let buffer = "";
   let fields = { data: [] };
+  let ended = false;
   try {
     for (;;) {
       const { value, done } = await reader.read();
-      if (done) return false;
-      buffer += value;
+      if (done) {
+        ended = true;
+        return false;
+      }
+      buffer += decoder.decode(value, { stream: true });
       for (;;) {
         const end = /\r\n|\r|\n/.exec(buffer);
         // A lone "\r" at the end may be the first half of "\r\n": wait for the next chunk.
@@ -90,6 +95,7 @@ async function readEvents(body, dispatch) {
             // The server ends the stream after the final event: read to its end, as cancelling a response
             // midway is reported by the browser as a network error.
             while (!(await reader.read()).done);
+            ended = true;
             return true;
           }
           fields = { data: [], id: fields.id };
@@ -105,7 +111,7 @@ async function readEvents(body, dispatch) {
       }
     }
   } finally {
-    reader.cancel().catch(() => {});
+    if (!ended) reader.cancel().catch(() => {});
   }
 }
 
