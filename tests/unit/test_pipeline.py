@@ -17,7 +17,7 @@ from symgs_core.progress import Cancelled
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import self_supervised_views
 
-FAST = CompressConfig(iterations=10, train_views=4, eval_views=2, resolution=64, max_levels=2)
+FAST = CompressConfig(iterations=10, train_views=4, eval_views=2, resolution=64, max_levels=2, pictures=False)
 
 
 @pytest.fixture(scope="module")
