@@ -117,16 +117,16 @@ def top_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tu
     """Up to ``count`` peaks of the 3x3x3-smoothed vote counts, strongest first: (cell coordinates [3], votes).
 
     ``cells`` [V] are flat vote cells. After each peak, the cells within ``radius`` of it and of its seam twin (the
-    same plane written as (-n, -offset)) are cleared, so one plane yields one peak. Many votes are accumulated into
-    the dense grid with ``index_add_`` (atomic on a GPU) and smoothed there; few are counted on their occupied cells,
-    which is cheaper than touching every cell and gives the same maxima wherever there are votes.
+    same plane written as (-n, -offset)) are cleared, so one plane yields one peak. Few votes are counted on their
+    occupied cells alone. Many are accumulated with ``index_add_`` (atomic on a GPU) into a dense grid of 2x2x2
+    blocks, whose smoothed maxima point to where the fine peaks are; each is then found among the votes of its
+    neighbourhood. Either way the peak is the maximum of the fine grid's 3x3x3 sums there.
     """
     if cells.numel() == 0 or count <= 0:
         return []
-    size = math.prod(spec.shape)
-    if cells.numel() * _SPARSE_RATIO >= size:
-        return _dense_peaks(cells, spec, count, radius)
-    return _sparse_peaks(cells, spec, count, radius)
+    if cells.numel() * _SPARSE_RATIO < math.prod(spec.shape):
+        return _sparse_peaks(cells, spec, count, radius)
+    return _blocked_peaks(cells, spec, count, radius)
 
 
 def _twins(spec: GridSpec, coord: Tensor) -> list[Tensor]:
@@ -136,24 +136,31 @@ def _twins(spec: GridSpec, coord: Tensor) -> list[Tensor]:
     return [coord.cpu(), *spec.unravel(flat).cpu()]
 
 
-def _dense_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:
-    grid = torch.zeros(spec.shape, dtype=torch.float32, device=cells.device)
-    flat_grid = grid.view(-1)
-    for s in range(0, cells.numel(), _CHUNK):
-        chunk = cells[s : s + _CHUNK].long()
-        flat_grid.index_add_(0, chunk, torch.ones(chunk.numel(), device=cells.device))
+def _blocked_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:
+    device = cells.device
+    blocks = torch.cat([spec.unravel(cells[s : s + _CHUNK].long()) // 2 for s in range(0, cells.numel(), _CHUNK)])
+    shape = tuple((s + 1) // 2 for s in spec.shape)
+    grid = torch.zeros(shape, dtype=torch.float32, device=device)
+    flat_blocks = (blocks[:, 0] * shape[1] + blocks[:, 1]) * shape[2] + blocks[:, 2]
+    for s in range(0, flat_blocks.numel(), _CHUNK):
+        chunk = flat_blocks[s : s + _CHUNK]
+        grid.view(-1).index_add_(0, chunk, torch.ones(chunk.numel(), device=device))
     smoothed = smooth(grid)
-    peaks = []
-    for _ in range(count):
+    block_radius = (radius + 1) // 2
+    peaks: list[tuple[Tensor, int]] = []
+    for _ in range(4 * count):  # neighbouring blocks may lead to the same fine peak
         flat = int(torch.argmax(smoothed))
-        votes = int(smoothed.view(-1)[flat])
-        if votes <= 0:
+        if float(smoothed.view(-1)[flat]) <= 0 or len(peaks) == count:
             break
-        coord = spec.unravel(torch.tensor([flat]))[0]
-        peaks.append((coord, votes))
-        for c in _twins(spec, coord):
-            suppress(smoothed, c, radius)
-    return peaks
+        block = torch.tensor([flat // (shape[1] * shape[2]), (flat // shape[2]) % shape[1], flat % shape[2]])
+        near = (blocks - block.to(device)).abs().amax(dim=1) <= 1
+        coord, votes = _sparse_peaks(cells[near], spec, 1, radius)[0]
+        if all((coord - c).abs().max() > radius for c, _ in peaks):
+            peaks.append((coord, votes))
+        suppress(smoothed, block, 1)
+        for twin in _twins(spec, coord):
+            suppress(smoothed, twin // 2, block_radius)
+    return sorted(peaks, key=lambda p: -p[1])
 
 
 def _sparse_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,45 +40,52 @@ def refine_from_pairs(
     return n.cpu(), g
 
 
-def _tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors [3] orthogonal to the unit vector ``n`` [3] and to each other."""
-    helper = torch.zeros_like(n)
-    helper[int(n.abs().argmin())] = 1.0
-    e1 = torch.linalg.cross(n, helper)
-    e1 = e1 / e1.norm()
-    return e1, torch.linalg.cross(n, e1)
+    helper = np.zeros(3)
+    helper[int(np.abs(n).argmin())] = 1.0
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
 
 
 def fit_reflection(
-    a: Tensor, b: Tensor, surface_normal: Tensor, flat: Tensor, weight: Tensor, normal: Tensor, offset: float
-) -> tuple[Tensor, float]:
+    a: np.ndarray,
+    b: np.ndarray,
+    surface_normal: np.ndarray,
+    flat: np.ndarray,
+    weight: np.ndarray,
+    normal: np.ndarray,
+    offset: float,
+) -> tuple[np.ndarray, float]:
     """One Gauss-Newton step of the plane that best maps points a [M, 3] onto their matches b [M, 3].
 
     Where the match lies on a surface (``flat`` [M] bool, unit ``surface_normal`` [M, 3]) only the distance along
     that normal counts (point-to-plane): sliding along the surface is free, so the fit is not held back by where the
     two independent samplings happened to put their Gaussians. Elsewhere the whole offset counts (point-to-point).
-    The plane moves in its two tilt directions and its offset. Returns the new unit normal [3] and offset (float64).
+    The plane moves in its two tilt directions and its offset; ``weight`` [M] weighs the pairs. Returns the new unit
+    normal [3] and offset (float64).
     """
-    a, b = a.to(torch.float64), b.to(torch.float64)
-    m, w = surface_normal.to(torch.float64), weight.to(torch.float64)
-    n = normal.to(torch.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    m = surface_normal.astype(np.float64)
     e1, e2 = _tangent_basis(n)
     d = a @ n - offset  # [M]
     resid = a - 2.0 * d[:, None] * n - b  # [M, 3]
-    # Derivatives of the reflected point a - 2 (n.a - g) n along e1, e2 (tilts) and g (offset): [M, 3, 3].
-    tilt = [-2.0 * ((a @ e)[:, None] * n + d[:, None] * e) for e in (e1, e2)]
-    jac = torch.stack([*tilt, (2.0 * n).expand_as(a)], dim=-1)
-    f = flat[:, None].to(torch.float64)
-    # Flat matches: one row m . resid; others: the three rows of resid. Rows of a non-flat pair's m-projection
-    # and of a flat pair's full residual are zeroed by ``f``.
-    r_plane = (m * resid).sum(-1) * f[:, 0]
-    j_plane = torch.einsum("mi,mij->mj", m, jac) * f
-    r_point = resid * (1.0 - f)
-    j_point = jac * (1.0 - f)[:, :, None]
-    lhs = torch.einsum("m,mi,mj->ij", w, j_plane, j_plane) + torch.einsum("m,mki,mkj->ij", w, j_point, j_point)
-    rhs = torch.einsum("m,mi,m->i", w, j_plane, r_plane) + torch.einsum("m,mki,mk->i", w, j_point, r_point)
-    lhs = lhs + 1e-9 * torch.eye(3, dtype=lhs.dtype) * float(lhs.diagonal().sum().clamp_min(1e-30))
-    step = -torch.linalg.solve(lhs, rhs)
+    # Derivatives of the reflected point a - 2 (n.a - g) n along the tilts e1, e2 and the offset g: 3 x [M, 3].
+    cols = [-2.0 * ((a @ e)[:, None] * n + d[:, None] * e) for e in (e1, e2)] + [np.broadcast_to(2.0 * n, a.shape)]
+    w_plane = np.where(flat, weight, 0.0)
+    w_point = np.where(flat, 0.0, weight)
+    j_plane = np.stack([np.einsum("ij,ij->i", m, c) for c in cols], axis=1)  # [M, 3]: rows m . dA'/dtheta
+    r_plane = np.einsum("ij,ij->i", m, resid)
+    lhs = np.einsum("m,mi,mj->ij", w_plane, j_plane, j_plane)
+    rhs = np.einsum("m,mi,m->i", w_plane, j_plane, r_plane)
+    for p, cp in enumerate(cols):
+        rhs[p] += float(w_point @ np.einsum("ij,ij->i", cp, resid))
+        for q in range(p, 3):
+            lhs[p, q] += float(w_point @ np.einsum("ij,ij->i", cp, cols[q]))
+            lhs[q, p] = lhs[p, q]
+    lhs += 1e-9 * max(float(np.trace(lhs)), 1e-30) * np.eye(3)
+    step = -np.linalg.solve(lhs, rhs)
     new_n = n + step[0] * e1 + step[1] * e2
-    norm = new_n.norm()
+    norm = float(np.linalg.norm(new_n))
     return new_n / norm, float((offset + step[2]) / norm)

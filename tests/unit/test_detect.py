@@ -143,7 +143,7 @@ def _scene(means: torch.Tensor, colour: torch.Tensor | None = None) -> GaussianS
     ids=["empty", "one", "identical", "one-plane", "uniform"],
 )
 def test_degenerate_inputs_return_cleanly(means: torch.Tensor) -> None:
-    mirrors = detect(_scene(means))
+    mirrors = detect(_scene(means), DetectConfig(max_mirrors=2))
     assert isinstance(mirrors, list)
     if mirrors:
         assert_partition(mirrors[0], set(range(len(means))))
@@ -180,6 +180,16 @@ def test_exclude_skips_known_planes() -> None:
     first = detect(s.scene, DetectConfig(max_mirrors=1))[0]
     again = detect(s.scene, DetectConfig(max_mirrors=1), exclude=[first.plane])
     assert again and angle_deg(again[0].plane, first.plane) > 5
+
+
+def test_importable_from_the_package_root_whatever_was_imported_first() -> None:
+    import symgs_core
+
+    s = synthetic_scene("global", n=1500, seed=0)
+    # The name is bound to the detect package once it is imported; calling it still runs detection.
+    (m,) = symgs_core.detect(s.scene, DetectConfig(max_mirrors=1))
+    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    assert symgs_core.DetectConfig is DetectConfig and symgs_core.Mirror is Mirror
 
 
 def test_config_rejects_bad_values() -> None:
