@@ -17,6 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("bench-out"), help="folder for bench.csv, bench.md and charts")
     p.add_argument("--no-peers", action="store_true", help="skip .spz, compressed PLY and SOG")
     p.add_argument("--no-match", action="store_true", help="skip the run matched to the .spz v3 PSNR")
+    p.add_argument("--peer-cache", type=Path, help="keep and reuse the peers' results in this folder")
     p.add_argument("--resolution", type=int, default=192)
     p.add_argument("--train-views", type=int, default=24)
     p.add_argument("--eval-views", type=int, default=8)
@@ -49,7 +50,8 @@ def _bench(args: argparse.Namespace) -> int:
     for scene in args.scenes:
         try:
             rows += bench_scene(scene, presets=presets, config=config, mirrors=mirrors, peers=not args.no_peers,
-                                match=not args.no_match, progress=lambda m: print(m, flush=True))  # fmt: skip
+                                match=not args.no_match, peer_cache=args.peer_cache,
+                                progress=lambda m: print(m, flush=True))  # fmt: skip
         except ValueError as exc:
             raise CliError(f"{scene}: {exc}") from exc
     files = write_outputs(rows, args.out)

@@ -11,7 +11,9 @@ better PSNR, the comparison the goals are stated in.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
+import json
 import math
 import os
 import shutil
@@ -129,13 +131,19 @@ def bench_scene(
     mirrors: tuple[bool, ...] = (True, False),
     peers: bool = True,
     match: bool = True,
+    peer_cache: Path | None = None,
     progress=None,  # noqa: ANN001 - Callable[[str], None]
 ) -> list[BenchRow]:
-    """Every entry for one scene; ``config`` gives the views, iterations and levels every run of ours shares."""
+    """Every entry for one scene; ``config`` gives the views, iterations and levels every run of ours shares.
+
+    ``peer_cache``: a folder where the peers' rows are kept per scene file and view settings, and reused (SOG's
+    k-means alone takes many minutes on a CPU).
+    """
     from .ply import load_scene
 
     say = progress or (lambda message: None)
-    name = ply.stem
+    # Trainers name their output point_cloud.ply or fused.ply: the folder then names the scene.
+    name = ply.parent.name if ply.stem in ("point_cloud", "fused", "scene") else ply.stem
     source = load_scene(ply)
     views = self_supervised_views(source, config.train_views, config.eval_views, config.resolution, torch.zeros(3),
                                   seed=config.seed)  # fmt: skip
@@ -143,12 +151,23 @@ def bench_scene(
     with tempfile.TemporaryDirectory(prefix="symgs-bench-") as tmp:
         if peers:
             say(f"{name}: peers")
-            rows += _peers(ply, name, source, views, find_splat_transform(), Path(tmp))
+            cached = _cache_file(peer_cache, ply, config) if peer_cache is not None else None
+            if cached is not None and cached.exists():
+                found = [BenchRow(**r) for r in json.loads(cached.read_text())]
+            else:
+                found = _peers(ply, name, source, views, find_splat_transform(), Path(tmp))
+                if cached is not None:
+                    cached.parent.mkdir(parents=True, exist_ok=True)
+                    cached.write_text(json.dumps([asdict(r) for r in found]))
+            for row in found:
+                rows.append(row)
+                say(_line(row))
     for preset in presets:
         for use_mirrors in mirrors:
             say(f"{name}: {preset}, mirrors {'on' if use_mirrors else 'off'}")
             run = replace(config, preset=preset, use_mirrors=use_mirrors, psnr_budget=_budget(preset, config))
             rows.append(_ours(ply, name, run, views, "symgs"))
+            say(_line(rows[-1]))
     if match and peers:
         reference = next((r for r in rows if r.entry == "spz v3 (splat-transform)"), None)
         reference = reference or next(r for r in rows if r.entry == "spz v3 (symgs)")
@@ -157,7 +176,20 @@ def bench_scene(
             budget = budget_for_floor(reference.psnr, config.nominal_psnr)
             run = replace(config, preset="balanced", use_mirrors=True, psnr_budget=min(budget, 60.0))
             rows.append(_ours(ply, name, run, views, f"symgs matched to {reference.entry}"))
+            say(_line(rows[-1]))
     return rows
+
+
+def _cache_file(folder: Path, ply: Path, config: CompressConfig) -> Path:
+    stat = ply.stat()
+    key = f"{ply.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{config.resolution}|{config.train_views}|" \
+          f"{config.eval_views}|{config.seed}"  # fmt: skip
+    return folder / f"{ply.stem}-{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
+
+
+def _line(row: BenchRow) -> str:
+    return (f"  {row.entry} [{row.preset}]: {row.bytes:,} bytes ({row.ratio_to_ply:.1f}x), {row.psnr:.2f} dB, "
+            f"encode {row.encode_s:.1f} s, decode {row.decode_s:.2f} s")  # fmt: skip
 
 
 def _budget(preset: str, config: CompressConfig) -> float:

@@ -10,7 +10,9 @@ level group), which is what makes position differences small.
     log-scales  q = round((s - origin) / step)
     opacity     quantised as alpha = sigmoid(logit) (what the renderer blends); alpha 0 decodes to the lowest logit
                 the PLY reader keeps, which the renderer skips (alpha < 1/255)
-    SH DC       q = round(dc / step) per channel
+    SH DC       q = round((dc - origin) / step) per channel
+Log-scales, opacity and DC colour that already lie on a uniform grid (``native_grid``: scenes decoded from 8-bit
+formats) are quantised on that grid, exactly, or on whole multiples of its step when the step asked for is coarser.
     SH rest     one step per band; a Gaussian's degree is the highest band with a non-zero symbol, stored as its own
                 column, and only the bands up to it are stored: bands dropped by ``prune.reduce_sh`` cost nothing
 """
@@ -30,6 +32,8 @@ from .section import EncodedSection, SectionKind
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
+MAX_GRID_LEVELS = 4096  # distinct values up to which an attribute is tested for a grid of its own
+GRID_TOLERANCE = 1e-3  # in grid cells: float32 storage of grid values stays far below it
 
 
 def _number(params: dict[str, Any], key: str, codec: str) -> float:
@@ -73,6 +77,30 @@ def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: st
     if q.size and float(np.abs(q).max()) >= MAX_LEVELS:
         raise ValueError(f"{codec}: step {step} puts values {float(np.abs(q).max()):.0f} cells from the origin")
     return q.astype(np.int64)
+
+
+def native_grid(values: np.ndarray, step: float, *, through_zero: bool = False) -> tuple[float, float] | None:
+    """(step, origin) of a uniform grid ``values`` already lie on, taken in whole multiples near ``step``; else None.
+
+    Scenes decoded from other compressed formats hold attributes on such grids (8-bit colours and alphas of `.splat`
+    and `.spz`, their 1/16 log-scale steps). Quantising on the same grid keeps those values exact, at the cost of
+    their own entropy, where a foreign grid would add error and spend bits on precision the scene never had.
+    ``through_zero``: the grid must contain 0 (the origin returned is then 0).
+    """
+    unique = np.unique(values)
+    if not 2 <= len(unique) <= MAX_GRID_LEVELS:
+        return None
+    gap = float(np.diff(unique).min())
+    cells = (unique - unique[0]) / gap
+    if gap <= 0 or np.abs(cells - np.round(cells)).max() > GRID_TOLERANCE:
+        return None
+    gap = float(unique[-1] - unique[0]) / round(float(cells[-1]))  # the span averages out the values' rounding
+    origin = float(unique[0])
+    if through_zero:
+        if abs(origin / gap - round(origin / gap)) > GRID_TOLERANCE:
+            return None
+        origin = 0.0
+    return gap * max(1, round(step / gap)), origin
 
 
 def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
@@ -163,9 +191,9 @@ class ScalarGridCodec:
 
     def encode(self, values: np.ndarray) -> EncodedSection:
         x = _finite(values, self.name).reshape(len(values), -1)
-        origin = float(x.min()) if x.size else 0.0
-        q = _grid(x, origin, self.step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": float(self.step)})
+        step, origin = native_grid(x, self.step) or (self.step, float(x.min()) if x.size else 0.0)
+        q = _grid(x, origin, step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": step})
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step"}, self.name)
@@ -189,8 +217,9 @@ class OpacityCodec:
 
     def encode(self, values: np.ndarray) -> EncodedSection:
         alpha = 1.0 / (1.0 + np.exp(-_finite(values, self.name)))
-        q = _grid(alpha[:, None], 0.0, self.step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": float(self.step)})
+        step, _ = native_grid(alpha, self.step, through_zero=True) or (self.step, 0.0)
+        q = _grid(alpha[:, None], 0.0, step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": step})
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"step"}, self.name)
@@ -207,23 +236,26 @@ class OpacityCodec:
 
 @dataclass(frozen=True)
 class ShDcCodec:
-    """DC colour coefficients [N, 3] on a ``step`` grid around zero."""
+    """DC colour coefficients [N, 3] on a ``step`` grid (around zero, or on the grid they already lie on)."""
 
     step: float
     name: str = field(default="q-dc", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
     def encode(self, values: np.ndarray) -> EncodedSection:
-        q = _grid(_finite(values, self.name), 0.0, self.step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": float(self.step)})
+        x = _finite(values, self.name)
+        step, origin = native_grid(x, self.step) or (self.step, 0.0)
+        q = _grid(x, origin, step, self.name)
+        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": step})
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"step"}, self.name)
+        _keys(params, {"origin", "step"}, self.name)
         _step(params, self.name)
+        _number(params, "origin", self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        return (_symbols(payload, shape[0], 3, self.name) * params["step"]).astype(np.float32)
+        return (params["origin"] + _symbols(payload, shape[0], 3, self.name) * params["step"]).astype(np.float32)
 
 
 def band_slices(degree: int) -> list[slice]:

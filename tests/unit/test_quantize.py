@@ -146,7 +146,7 @@ def test_quantized_archive_encoding_is_pinned() -> None:
     assert hashlib.sha256(data).hexdigest() == PINNED
 
 
-PINNED = "6018d389523549ddedc51c7d3a30f354d66d223bab8d6247d177a9e7aef71b5b"
+PINNED = "b756aff7f00f8297a4eabb471a4778ad4617049954823d2528e8b787c405212c"
 
 
 @pytest.mark.parametrize(
@@ -157,7 +157,7 @@ PINNED = "6018d389523549ddedc51c7d3a30f354d66d223bab8d6247d177a9e7aef71b5b"
         (RotationCodec(1.0), (4, 4), {"step": float("nan")}),
         (OpacityCodec(0.1), (4,), {"step": 2.0}),
         (ShRestCodec((0.1,)), (4, 3, 3), {"steps": [0.1, 0.1]}),
-        (ShDcCodec(0.1), (4, 3), {"step": 0.1, "extra": 1}),
+        (ShDcCodec(0.1), (4, 3), {"origin": 0.0, "step": 0.1, "extra": 1}),
     ],
 )
 def test_impossible_parameters_are_refused_before_decoding(codec, shape, params) -> None:  # noqa: ANN001
@@ -186,3 +186,24 @@ def test_attributes_that_cannot_be_quantised_are_refused() -> None:
         PositionCodec(0.1).encode(np.array([[0, np.inf, 0]], dtype=np.float32))
     with pytest.raises(ValueError, match="cells"):
         PositionCodec(1e-9).encode(np.array([[0, 0, 0], [100, 0, 0]], dtype=np.float32))
+
+
+def test_attributes_on_a_grid_of_their_own_are_kept_on_it() -> None:
+    """8-bit colours and alphas (scenes decoded from .splat or .spz) survive exactly; coarser asks use multiples."""
+    rng = np.random.default_rng(8)
+    c0 = 0.28209479177387814
+    dc = ((rng.integers(0, 256, size=(3000, 3)) / 255.0 - 0.5) / c0).astype(np.float32)
+    out, _ = _roundtrip(ShDcCodec(0.001), dc)  # finer than the grid: the grid itself
+    assert np.abs(out - dc).max() < 1e-5
+    out, _ = _roundtrip(ShDcCodec(0.05), dc)  # coarser: every 4th grid value (step 4/(255 C0) = 0.0556)
+    cells = (out.astype(np.float64) - dc.min()) * 255 * c0
+    assert np.abs(cells - 4 * np.round(cells / 4)).max() < 1e-3
+    logits = np.log((a := rng.integers(1, 255, size=3000) / 255.0) / (1 - a)).astype(np.float32)
+    out, _ = _roundtrip(OpacityCodec(1 / 1000), logits)
+    assert np.abs(1 / (1 + np.exp(-out.astype(np.float64))) - a).max() < 1e-6
+    scales = (rng.integers(0, 160, size=(3000, 3)) / 16.0 - 10.0).astype(np.float32)
+    out, _ = _roundtrip(ScalarGridCodec(0.01), scales)
+    assert np.array_equal(out, scales)
+    trained = rng.normal(size=(3000, 3)).astype(np.float32)  # no grid: the step asked for
+    out, _ = _roundtrip(ShDcCodec(0.02), trained)
+    assert 0.009 < np.abs(out - trained).max() <= 0.01 + 1e-6

@@ -47,3 +47,24 @@ def test_no_quantisation_fits_an_infinite_floor(setting) -> None:  # noqa: ANN00
     state, views = setting
     assert fit_quantization(state, views.test, views.background, floor=math.inf, start=QuantSteps(),
                             psnr_before=math.inf) is None  # fmt: skip
+
+
+def test_a_lossy_preset_reports_every_stage_and_keeps_the_floor() -> None:
+    from symgs_core.config import CompressConfig
+    from symgs_core.pipeline import compress, decompress
+
+    scene = synthetic_scene("global", n=900, seed=6, sh_degree=1).scene
+    config = CompressConfig(preset="balanced", psnr_budget=0.3, iterations=2, train_views=3, eval_views=2,
+                            resolution=48, max_levels=1, pictures=False)  # fmt: skip
+    result = compress(scene, config=config)
+    report = result.report
+    stages = report["stages"]
+    assert [s["stage"] for s in stages] == ["mirrors", "pruning", "sh_reduction", "quantization", "entropy_coding"]
+    for before, after in zip(stages, stages[1:]):
+        assert after["bytes_before"] == before["bytes_after"]
+    assert stages[-1]["bytes_after"] == len(result.archive) == report["output_bytes"]
+    assert report["psnr"] >= report["psnr_floor"] == pytest.approx(config.self_supervised_floor())
+    assert stages[-1]["psnr_after"] == pytest.approx(report["psnr"])
+    lossless = compress(scene, config=CompressConfig(**{**config.__dict__, "preset": "lossless"})).report
+    assert report["output_bytes"] * 4 < lossless["output_bytes"]
+    assert len(decompress(result.archive)) == report["gaussians"]["decoded"]
