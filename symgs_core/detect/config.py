@@ -32,8 +32,8 @@ class DetectConfig:
                                             shape the match score, 0..1 (0: geometry alone); scaled down by how
                                             often close matches agree at all (real captures' halves rarely do)
     min_coverage                            a mirror is reported only if (|left| + |right|) / working set >= this
-    min_significance                        ... and its geometric match rate is at least this many times that of
-                                            random planes in the same working set (what matches by chance)
+    min_significance                        ... and this many times the share random planes match in the same
+                                            working set (what matches by chance)
     max_mirrors                             levels searched; each repeats detection on left + out
     candidates                              peaks tried per level, best first, until one passes min_coverage
     min_gaussians                           a working set smaller than this is not searched

@@ -35,6 +35,7 @@ _REGION_SCORE = 0.4  # ... and the mean score of its voxel on its side this: cha
 _PRIOR_COUNT = 1.5  # unmatched pseudo-Gaussians added to every voxel: a lone matched Gaussian is a speck
 _VOXEL_SPACINGS = 6.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
+_CHANCE_VOXELS = 0.1  # share of the voxels whose Gaussians measure the chance coverage
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 50_000
 _LN2 = math.log(2.0)
@@ -101,6 +102,8 @@ class Matcher:
         # On a surface a voxel holds about (voxel / 2 spacing)^2 Gaussians: the local spacing follows from its count,
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
         local = 0.5 * voxel / np.sqrt(counts[self.voxel])
+        chosen = rng.random(counts.size) < _CHANCE_VOXELS
+        self.chance_sample = np.nonzero(chosen[self.voxel])[0]  # whole voxels, so their region means are exact
         self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
 
     def sides(self, normal: Tensor, offset: float) -> Sides:
@@ -112,19 +115,7 @@ class Matcher:
         empty = torch.zeros(0, dtype=torch.long, device=self.device)
         if side.all() or not side.any():
             return Sides(empty, empty)
-        everyone = np.arange(len(d))
-        score, hit, w = self._scores(everyone, d, n, offset, side, k=1, weight=None)
-        # With noise the twin need not be the very nearest: where the nearest is close but does not match, try the
-        # next few (where nothing is close, the next few are farther still).
-        retry = np.nonzero((score < _OWN_SCORE) & (hit != everyone))[0]
-        if retry.size:
-            score_r, hit_r, _ = self._scores(retry, d, n, offset, side, k=_CANDIDATES, weight=w)
-            better = score_r > score[retry]
-            score[retry[better]] = score_r[better]
-            hit[retry[better]] = hit_r[better]
-        region = self.voxel * 2 + side
-        mean = np.bincount(region, weights=score) / (np.bincount(region) + _PRIOR_COUNT)
-        matched = (score >= _OWN_SCORE) & (mean[region] >= _REGION_SCORE)
+        matched, hit = self._matched(np.arange(len(d)), d, n, offset, side)
         # A covered Gaussian needs a matched coverer, and a coverer a matched Gaussian to cover.
         cover = matched & matched[hit]
         keep_side = side if (cover & side).sum() >= (cover & ~side).sum() else ~side
@@ -133,6 +124,39 @@ class Matcher:
             return torch.from_numpy(a).to(self.device)
 
         return Sides(t(np.nonzero(cover & keep_side)[0]), t(np.nonzero(cover & ~keep_side)[0]))
+
+    def chance_coverage(self, planes: int, seed: int) -> float:
+        """Share of the Gaussians that random planes (random normals through random Gaussians) match, estimated on
+        the Gaussians of a random tenth of the voxels: what any plane explains by chance here. Coarse or cluttered
+        sets match much more by chance than finely sampled surfaces do."""
+        gen = torch.Generator().manual_seed(seed)
+        idx = self.chance_sample
+        shares = []
+        for _ in range(planes):
+            n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0).numpy()
+            offset = float(self.p[int(torch.randint(self.p.shape[0], (1,), generator=gen))] @ n)
+            d = self.p @ n - offset
+            matched, _ = self._matched(idx, d, n, offset, d > 0)
+            shares.append(float(matched.mean()) if matched.size else 0.0)
+        return float(np.mean(shares)) if shares else 0.0
+
+    def _matched(
+        self, idx: np.ndarray, d: np.ndarray, n: np.ndarray, offset: float, side: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Whether each of the Gaussians ``idx`` [M] (whole voxels) is matched, and the Gaussian [M] matching it."""
+        score, hit, w, geo = self._scores(idx, d, n, offset, side, k=1, weight=None)
+        # With noise the twin need not be the very nearest: where the nearest is close but does not look alike, try
+        # the next few (where the nearest is not close, the next few are farther still).
+        retry = np.nonzero((score < _OWN_SCORE) & (geo >= 0.5))[0]
+        if retry.size:
+            score_r, hit_r, _, _ = self._scores(idx[retry], d, n, offset, side, k=_CANDIDATES, weight=w)
+            better = score_r > score[retry]
+            score[retry[better]] = score_r[better]
+            hit[retry[better]] = hit_r[better]
+        _, region = np.unique(self.voxel[idx] * 2 + side[idx], return_inverse=True)
+        region = region.reshape(-1)
+        mean = np.bincount(region, weights=score) / (np.bincount(region) + _PRIOR_COUNT)
+        return (score >= _OWN_SCORE) & (mean[region] >= _REGION_SCORE), hit
 
     def _scores(
         self,
@@ -143,11 +167,13 @@ class Matcher:
         side: np.ndarray,
         k: int,
         weight: float | None,
-    ) -> tuple[np.ndarray, np.ndarray, float]:
+    ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """Best match score [M] of Gaussians ``idx`` [M] among their k nearest Gaussians across the plane, that
-        Gaussian [M] (its own index where none), and the attribute weight used (computed here when None)."""
+        Gaussian [M] (its own index where none), the attribute weight used (computed here when None), and the
+        geometric score [M] of the best match."""
         reflected = self.p[idx] - 2.0 * d[idx, None] * n
-        err, hit = self._other_side(reflected, idx, side, d, 3.0 * self.tolerance * float(self.spacing.max()), k)
+        # Two tolerances out a match scores 1/16: nothing farther is worth finding.
+        err, hit = self._other_side(reflected, idx, side, d, 2.0 * self.tolerance * float(self.spacing.max()), k)
         found = np.isfinite(err)
         hit = np.where(found, hit, idx[:, None])
         tau = (self.tolerance * self.spacing[idx])[:, None]
@@ -157,28 +183,7 @@ class Matcher:
         scores = geo * (1.0 - w + w * agree)
         best = scores.argmax(axis=1)
         rows = np.arange(len(idx))
-        return scores[rows, best], hit[rows, best], w
-
-    def match_rate(self, normal: Tensor, offset: float) -> float:
-        """Share of (a fixed sample of) the Gaussians whose reflection lands within the tolerance of a Gaussian on
-        the other side: the raw geometric evidence for a plane, before attributes and regions."""
-        n = normal.detach().to(torch.float64).cpu().numpy()
-        i = self.sample
-        d = self.p[i] @ n - offset
-        err, hit = _query(self.tree, self.p[i] - 2.0 * d[:, None] * n, k=1)
-        crossed = (self.p[hit] @ n - offset > 0) != (d > 0)
-        return float((crossed & (err < self.tolerance * self.spacing[i])).mean())
-
-    def chance_rate(self, planes: int, seed: int) -> float:
-        """Mean ``match_rate`` of random planes (random normals through random Gaussians): what any plane explains by
-        chance here. Coarse or cluttered sets match much more by chance than finely sampled surfaces do."""
-        gen = torch.Generator().manual_seed(seed)
-        rates = []
-        for _ in range(planes):
-            n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0)
-            at = int(torch.randint(self.p.shape[0], (1,), generator=gen))
-            rates.append(self.match_rate(n, float(self.p[at] @ n.numpy())))
-        return float(np.mean(rates)) if rates else 0.0
+        return scores[rows, best], hit[rows, best], w, geo[rows, best]
 
     def refine(self, normal: Tensor, offset: float, iters: int) -> tuple[Tensor, float]:
         """Iterated closest points on (a sample of) the Gaussians that match for the starting plane: pair each,
@@ -188,7 +193,7 @@ class Matcher:
         n = normal.detach().to(torch.float64).cpu().numpy()
         g = float(offset)
         d = self.p @ n - g
-        score, _, _ = self._scores(self.sample, d, n, g, d > 0, k=1, weight=None)
+        score, _, _, _ = self._scores(self.sample, d, n, g, d > 0, k=1, weight=None)
         idx = self.sample[score >= _OWN_SCORE]
         a = self.p[idx]
         tau = self.tolerance * self.spacing[idx]

@@ -25,7 +25,7 @@ _MAX_OFFSET = 1.0  # planes farther than the robust radius from the centre cut o
 _REFINE_WINDOW = 2  # cells around the peak whose votes feed the refinement
 _SUPPRESS_WINDOW = 4  # cells around a rejected peak cleared before the next candidate
 _SAME_PLANE_CELLS = 4  # a candidate this many cells from a known mirror is that mirror again
-_SPARE_PEAKS = 2  # extra peaks per known mirror: it may come back as a peak or two
+_SPARE_PEAKS = 2  # peaks per candidate or known mirror: one plane may leave a peak or two
 _CHANCE_PLANES = 6  # random planes that measure how much matches by chance
 
 
@@ -90,15 +90,15 @@ def _detect_level(
     spec = GridSpec(config.angle_res, config.offset_res, _MAX_OFFSET)
     axes = distinct_axes(scene, config.axis_ratio)
     votes_cell, votes_i, votes_j = _vote(x, groups, axes, spec, config, level, clock)
-    peaks = top_peaks(votes_cell, spec, config.candidates + _SPARE_PEAKS * len(known), _SUPPRESS_WINDOW)
+    peaks = top_peaks(votes_cell, spec, _SPARE_PEAKS * (config.candidates + len(known)), _SUPPRESS_WINDOW)
     clock.lap("peak")
     vote_coords = spec.unravel(votes_cell.long()).to(torch.int32)  # [V, 3]
     n_points = x.shape[0]
     matcher: Matcher | None = None
     chance: float | None = None
-    tried = 0
+    tried: list[tuple[Tensor, float]] = []
     for coord, peak_votes in peaks:
-        if tried == config.candidates:
+        if len(tried) == config.candidates:
             break
         normal, offset = spec.plane(coord)
         near = (vote_coords - coord.to(vote_coords)).abs().amax(dim=1) <= _REFINE_WINDOW
@@ -108,23 +108,24 @@ def _detect_level(
         )
         normal, offset = _canonical(normal, offset)
         clock.lap("refine")
-        if any(_same_plane(normal, offset, frame.plane_to_local(p), config) for p in known):
-            continue
-        tried += 1
+        if any(_same_plane(normal, offset, frame.plane_to_local(p), config) for p in known) or any(
+            _same_plane(normal, offset, t, config) for t in tried
+        ):
+            continue  # a known mirror, or a peak that refines to a plane already tried
+        tried.append((normal, offset))
         if matcher is None:
             matcher = Matcher(
                 x, attrs, axes, tolerance=config.match_tolerance, attribute_weight=config.attribute_weight
             )
+            clock.lap("membership")
         if config.icp_iters:
             normal, offset = _canonical(*matcher.refine(normal, offset, config.icp_iters))
         clock.lap("refine")
         sides = matcher.sides(normal, offset)
         coverage = (sides.left.numel() + sides.right.numel()) / n_points
         if coverage >= config.min_coverage and chance is None:
-            chance = matcher.chance_rate(_CHANCE_PLANES, config.seed + level)
-        significant = coverage >= config.min_coverage and matcher.match_rate(normal, offset) >= (
-            config.min_significance * chance
-        )
+            chance = matcher.chance_coverage(_CHANCE_PLANES, config.seed + level)
+        significant = coverage >= config.min_coverage and coverage >= config.min_significance * chance
         clock.lap("membership")
         if significant and sides.left.numel():
             world_n, world_g = frame.plane_to_world(normal.to(frame.centre.dtype).to(frame.centre.device), offset)
