@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.py; set before torch loads
 
 # Modules that define `register(subparsers)`; each subcommand sets `func(args) -> int` as its handler.
 COMMAND_MODULES = [

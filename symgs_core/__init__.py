@@ -6,7 +6,12 @@ Public names are imported lazily so that ``import symgs_core`` stays cheap for t
 from __future__ import annotations
 
 import importlib
+import os
 from typing import Any
+
+# OpenMP threads (torch's and numba's) that spin while waiting take the cores from the threads doing the work: on
+# two busy cores that made the renderer ten times slower. Only effective before torch is first imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 _PUBLIC = {
     "GaussianScene": "scene",

@@ -11,9 +11,19 @@ from pathlib import Path
 import torch
 
 from .config import CompressConfig
+from .gating import colour_mismatch, gated
 from .optimize import LevelState, evaluate, optimize_level
 from .scene import GaussianScene
 from .views import ViewSet
+
+# Colour-agreement gates (largest RGB channel difference) tried after the geometric membership, loosest first.
+GATES = (0.3, 0.2, 0.1)
+# A level must drop at least this share of its working set to be worth its plane, mask and fine-tune.
+MIN_SAVING = 0.02
+# dB a fine-tune typically recovers on a real capture; memberships starting further below the floor are not tried.
+TUNE_GAIN = 3.0
+# Fine-tunes tried per level before the level is given up.
+MAX_ATTEMPTS = 2
 
 
 @dataclass
@@ -25,6 +35,7 @@ class LevelRecord:
     left: int
     right: int
     coverage: float
+    gate: float | None
     psnr_before: float
     psnr_after: float
     ssim: float
@@ -61,9 +72,39 @@ def apply_mirror(
     )
 
 
+@dataclass(frozen=True)
+class Membership:
+    """One way to apply a detected mirror: the plane, the Gaussians reflected (left) and dropped (right), and the
+    colour-agreement gate that produced it (None: geometry alone)."""
+
+    normal: torch.Tensor  # [3]
+    offset: float
+    left: torch.Tensor  # [L] indices into the working set
+    right: torch.Tensor  # [R]
+    votes: float
+    coverage: float
+    gate: float | None
+
+
+def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 - detect.Mirror
+    """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first."""
+    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
+    offset = float(mirror.plane.offset)
+    base = Membership(normal, offset, mirror.left, mirror.right, float(mirror.votes), float(mirror.coverage), None)
+    mismatch, nearest = colour_mismatch(state.stored, normal, offset, mirror.left, mirror.right)
+    out = [base]
+    for gate in GATES:
+        left, right = gated(mirror.left, mirror.right, mismatch, nearest, gate)
+        if right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
+            continue
+        coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
+        out.append(Membership(normal, offset, left, right, base.votes, coverage, gate))
+    return out
+
+
 def try_level(
     state: LevelState,
-    mirror,  # noqa: ANN001 - detect.Mirror
+    membership: Membership,
     views: ViewSet,
     *,
     level: int,
@@ -71,12 +112,13 @@ def try_level(
     floor: float,
     extent: float,
     report,  # noqa: ANN001 - pipeline._Reporter
+    psnr_before: float | None = None,
 ) -> tuple[LevelState, LevelRecord]:
-    """Apply one detected mirror, fine-tune and judge it. Returns the candidate state and its record."""
+    """Apply one membership of a mirror, fine-tune and judge it. Returns the candidate state and its record."""
     t0 = time.perf_counter()
-    normal = torch.tensor(mirror.plane.normal)
-    candidate = apply_mirror(state, normal, mirror.plane.offset, mirror.left, mirror.right)
-    psnr_before, _ = evaluate(candidate.expanded(), views.test, views.background)
+    candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
+    if psnr_before is None:
+        psnr_before, _ = evaluate(candidate.expanded(), views.test, views.background)
 
     def on_step(step: int, loss: float) -> None:
         if step % 10 == 0:
@@ -107,10 +149,11 @@ def try_level(
         level=level,
         normal=[float(v) for v in tuned.normals[-1]],
         offset=float(tuned.offsets[-1]),
-        votes=float(mirror.votes),
-        left=int(len(mirror.left)),
-        right=int(len(mirror.right)),
-        coverage=float(mirror.coverage),
+        votes=membership.votes,
+        left=int(membership.left.numel()),
+        right=int(membership.right.numel()),
+        coverage=membership.coverage,
+        gate=membership.gate,
         psnr_before=psnr_before,
         psnr_after=psnr_after,
         ssim=ssim_after,
@@ -120,6 +163,25 @@ def try_level(
         reason="within budget" if accepted else f"held-out PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB",
     )
     return tuned, record
+
+
+def plan_attempts(
+    state: LevelState, options: list[Membership], views: ViewSet, *, floor: float, config: CompressConfig
+) -> list[tuple[Membership, float]]:
+    """The memberships worth fine-tuning, loosest first, with their PSNR before the fine-tune.
+
+    A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set) and start
+    within ``TUNE_GAIN`` dB of the floor (what a fine-tune typically recovers); at most ``MAX_ATTEMPTS`` are tried.
+    """
+    worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
+    scored = []
+    for m in worth:
+        candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
+        scored.append((m, evaluate(candidate.expanded(), views.test, views.background)[0]))
+    hopeful = [(m, p) for m, p in scored if p >= floor - TUNE_GAIN]
+    if not hopeful and scored:  # none close enough: the strictest still gets its chance
+        hopeful = scored[-1:]
+    return hopeful[:MAX_ATTEMPTS]
 
 
 def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelRecord], done: bool) -> None:
@@ -177,19 +239,28 @@ def run_levels(
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
         mirrors = detect(state.stored, detect_config)
         report.timed("detect", time.perf_counter() - t0)
-        if not mirrors:
-            done = True
-        else:
+        attempts = (
+            plan_attempts(state, memberships(state, mirrors[0]), views, floor=floor, config=config) if mirrors else []
+        )
+        done = True
+        for membership, psnr_before in attempts:
             t0 = time.perf_counter()
             candidate, record = try_level(
-                state, mirrors[0], views, level=level, config=config, floor=floor, extent=extent, report=report
+                state,
+                membership,
+                views,
+                level=level,
+                config=config,
+                floor=floor,
+                extent=extent,
+                report=report,
+                psnr_before=psnr_before,
             )
             report.timed("optimize", time.perf_counter() - t0)
             records.append(record)
             if record.accepted:
-                state = candidate
-            else:
-                done = True
+                state, done = candidate, False
+                break
         if checkpoint is not None:
             _save_checkpoint(checkpoint, fingerprint, state, records, done)
     report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")

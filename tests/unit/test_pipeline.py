@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from symgs_core.config import CompressConfig
-from symgs_core.detect import Mirror
-from symgs_core.levels import try_level
-from symgs_core.mirror import Plane
+from symgs_core.detect import DetectConfig, detect
+from symgs_core.levels import Membership, memberships, try_level
 from symgs_core.optimize import LevelState, evaluate
 from symgs_core.pipeline import _Reporter, compress, decompress
 from symgs_core.progress import Cancelled
@@ -86,13 +85,14 @@ def test_level_that_makes_things_worse_is_rolled_back(symmetric):
     views = self_supervised_views(scene, 4, 2, 64, torch.zeros(3))
     # A wrong plane (orthogonal to the planted one) with an arbitrary split of the Gaussians.
     side = scene.means[:, 1] > scene.means[:, 1].median()
-    wrong = Mirror(
-        Plane((0.0, 1.0, 0.0), 0.0),
-        votes=1,
+    wrong = Membership(
+        torch.tensor([0.0, 1.0, 0.0]),
+        0.0,
         left=torch.nonzero(side).flatten(),
         right=torch.nonzero(~side).flatten(),
-        out=torch.zeros(0, dtype=torch.long),
+        votes=1.0,
         coverage=1.0,
+        gate=None,
     )
     _, record = try_level(
         LevelState.plain(scene),
@@ -106,6 +106,21 @@ def test_level_that_makes_things_worse_is_rolled_back(symmetric):
     )
     assert not record.accepted
     assert record.psnr_after < FAST.self_supervised_floor()
+
+
+def test_colour_gates_keep_asymmetric_details_out_of_a_level(symmetric):
+    """A patch repainted on the right side only: the gated membership keeps it, the geometric one drops it."""
+    scene = symmetric.scene.clone()
+    right = symmetric.right[0]
+    patch = right[scene.means[right, 1] > scene.means[right, 1].quantile(0.8)]
+    scene.sh_dc[patch] = torch.tensor([3.0, -3.0, -3.0])  # saturated red where the left side is not
+    mirror = detect(scene, DetectConfig(max_mirrors=1))[0]
+    options = memberships(LevelState.plain(scene), mirror)
+    assert options[0].gate is None and any(o.gate is not None for o in options)
+    loosest = options[1]
+    kept = set(patch.tolist()) - set(loosest.right.tolist())
+    assert len(kept) >= 0.9 * len(patch)  # the repainted patch is no longer dropped
+    assert loosest.right.numel() >= 0.7 * options[0].right.numel()  # the rest of the mirror still is
 
 
 def test_zero_budget_keeps_the_plain_codec(symmetric):
