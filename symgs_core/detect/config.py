@@ -14,8 +14,9 @@ class DetectConfig:
     angle_res, offset_res                   accumulator cells: side of a normal cell (equal-area, about that many
                                             radians) and depth of an offset cell (fraction of R)
     radius_quantile                         R is this quantile of the distances to the median of the means
-    pair_budget                             pairs voted per level; clusters whose pairs fit in
-                                            ``enumerate_share`` of it are enumerated, the rest is sampled
+    pair_budget, pairs_per_gaussian          pairs voted per level: at most pair_budget, and at most
+                                            pairs_per_gaussian per Gaussian of the working set; clusters whose
+                                            pairs fit in ``enumerate_share`` of it are enumerated, the rest sampled
     max_pair_distance                       pairs farther apart do not vote (fraction of R; None: no limit), to
                                             favour local mirrors
     axis_tolerance                          a pair votes only if the reflected distinct axis (the shortest of a
@@ -47,6 +48,7 @@ class DetectConfig:
     offset_res: float = 0.01
     radius_quantile: float = 0.99
     pair_budget: int = 4_000_000
+    pairs_per_gaussian: float = 8.0
     enumerate_share: float = 0.5
     max_pair_distance: float | None = None
     axis_tolerance: float | None = 0.5

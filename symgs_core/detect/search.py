@@ -145,7 +145,8 @@ def _vote(
     """The votes of the candidate pairs: per vote, its flat cell [V] and its pair (i [V], j [V])."""
     device = x.device
     gen = torch.Generator(device=device).manual_seed(config.seed + level)
-    pi, pj, _, _ = candidate_pairs(groups, config.pair_budget, config.enumerate_share, gen)
+    budget = max(1, min(config.pair_budget, int(config.pairs_per_gaussian * x.shape[0])))
+    pi, pj, _, _ = candidate_pairs(groups, budget, config.enumerate_share, gen)
     prune = config.axis_tolerance is not None
     min_cos = math.cos(config.axis_tolerance) if prune else 0.0
     max_d2 = math.inf if config.max_pair_distance is None else config.max_pair_distance**2
