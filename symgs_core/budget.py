@@ -76,13 +76,15 @@ def fit_quantization(
     floor: float,
     start: QuantSteps,
     psnr_before: float,
-    max_tries: int = 4,
+    max_tries: int = 6,
+    slack_db: float = 0.25,
 ) -> QuantFit | None:
     """The coarsest multiple of ``start`` whose decoded scene keeps the held-out PSNR at or above ``floor``.
 
     The quantisation error grows as the square of the step, so each try rescales the steps by the square root of
-    (error allowed / error measured), aiming at 85% of what is allowed; at most ``max_tries`` renders. None when no
-    try passes (the caller then stores the attributes losslessly).
+    (error allowed / error measured), aiming at 90% of what is allowed; it stops at the first pass within
+    ``slack_db`` of the floor, or after ``max_tries`` renders. None when no try passes (the caller then stores the
+    attributes losslessly).
     """
     if math.isinf(floor):
         return None
@@ -97,8 +99,10 @@ def fit_quantization(
         tries.append({"factor": factor, "psnr": value})
         if value >= floor and (best is None or factor > best.factor):
             best = QuantFit(steps, factor, value, tries)
+            if value < floor + slack_db:
+                break
         error = psnr_to_mse(value) - psnr_to_mse(psnr_before)
-        proposal = factor * 8.0 if error <= 0 else factor * math.sqrt(0.85 * allowed / error)
+        proposal = factor * 8.0 if error <= 0 else factor * math.sqrt(0.9 * allowed / error)
         proposal = float(np.clip(proposal, factor / 8.0, factor * 8.0))
         if best is not None and proposal <= best.factor * 1.1:
             break

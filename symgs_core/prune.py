@@ -84,7 +84,7 @@ def prune(
     floor: float,
     extent: float,
     iterations: int = 0,
-    thresholds: tuple[float, ...] = (0.5, 0.1, 0.02),
+    thresholds: tuple[float, ...] = (0.5, 0.1, 0.02, 0.004),
 ) -> StageResult | None:
     """Remove stored Gaussians whose total weight over the training views is below a threshold (pixels).
 
@@ -115,7 +115,7 @@ def reduce_sh(
     background: Tensor,
     *,
     floor: float,
-    thresholds: tuple[float, ...] = (1e-2, 1e-3, 1e-4),
+    thresholds: tuple[float, ...] = (1e-2, 1e-3, 1e-4, 1e-5),
 ) -> StageResult | None:
     """Lower each Gaussian's SH degree while weight x dropped band energy stays below a threshold.
 
