@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -223,8 +224,13 @@ def run_levels(
     report,  # noqa: ANN001 - pipeline._Reporter
     checkpoint: Path | None,
     fingerprint: str,
+    size_of: Callable[[LevelState], int] | None = None,
 ) -> tuple[LevelState, list[LevelRecord]]:
-    """Accept mirror levels while they pay for themselves; resume from ``checkpoint`` when it matches."""
+    """Accept mirror levels while they pay for themselves; resume from ``checkpoint`` when it matches.
+
+    ``size_of`` measures a state's archive where fewer Gaussians need not mean fewer bytes (a lossless archive of
+    a scene whose values sit on a grid: fine-tuned values leave it); a level must then also shrink it.
+    """
     from .detect import DetectConfig, detect
 
     state, records, done = LevelState.plain(source), [], False
@@ -257,6 +263,9 @@ def run_levels(
                 psnr_before=psnr_before,
             )
             report.timed("optimize", time.perf_counter() - t0)
+            if record.accepted and size_of is not None and size_of(candidate) >= size_of(state):
+                record.accepted = False
+                record.reason = "within budget, but the archive would not shrink"
             records.append(record)
             if record.accepted:
                 state, done = candidate, False

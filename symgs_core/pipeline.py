@@ -12,14 +12,13 @@ from pathlib import Path
 import torch
 
 from .cameras import COORDINATE_CONVENTION, scene_bounds
-from .codec import ArchiveContents, coding_order, decode_archive, encode_archive, expand_archive
+from .codec import decode_archive, expand_archive
 from .config import CompressConfig
 from .levels import LevelRecord, run_levels
-from .mirror import Plane
 from .optimize import LevelState, evaluate
 from .progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from .scene import GaussianScene
-from .stages import mirror_floor, reduce_and_encode
+from .stages import mirror_floor, reduce_and_encode, write_archive
 from .views import ViewSet, dataset_views, self_supervised_views
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
@@ -82,13 +81,6 @@ def _fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Pat
     return h.hexdigest()
 
 
-def _archive(state: LevelState, meta: dict) -> bytes:
-    planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
-    stored, bits = state.stored.detach().to("cpu"), state.bits.cpu()
-    perm = coding_order(stored, bits)
-    return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta))
-
-
 def compress(
     scene: GaussianScene | str | Path,
     *,
@@ -145,13 +137,23 @@ def compress(
         report=report,
         checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
         fingerprint=_fingerprint(source, config, images),
+        size_of=(lambda st: len(write_archive(st, meta))) if config.preset == "lossless" else None,
     )
 
     t0 = time.perf_counter()
     report("encode", 0.0, "encoding archive")
     coded = reduce_and_encode(
-        LevelState.plain(source), state, views.train, views.test, background, config=config, floor=floor,
-        reference=reference_psnr, extent=radius, meta=meta, report=report,
+        LevelState.plain(source),
+        state,
+        views.train,
+        views.test,
+        background,
+        config=config,
+        floor=floor,
+        reference=reference_psnr,
+        extent=radius,
+        meta=meta,
+        report=report,
     )
     state, archive, baseline = coded.state, coded.archive, coded.baseline
     report.timed("encode", time.perf_counter() - t0)
