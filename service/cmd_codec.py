@@ -1,4 +1,4 @@
-"""`symgs compress` and `symgs decompress`: the pipeline on local files, no server."""
+"""`symgs compress`, `decompress` and `evaluate`: the pipeline on local files, no server."""
 
 from __future__ import annotations
 
@@ -35,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("-o", "--output", type=Path, required=True, help="output scene: .ply, .spz or .compressed.ply")
     d.add_argument("--spz-version", type=int, choices=[2, 3, 4], default=3, help=".spz version to write (default 3)")
     d.set_defaults(func=_decompress)
+    register_evaluate(sub)
 
 
 def _compress(args: argparse.Namespace) -> int:
@@ -120,4 +121,48 @@ def _decompress(args: argparse.Namespace) -> int:
     export_scene(scene, args.output, fmt, version=args.spz_version)
     version = f" v{args.spz_version}" if fmt == "spz" else ""
     print(f"{args.output}: {fmt}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
+    return 0
+
+
+def register_evaluate(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("evaluate", help="PSNR/SSIM of a decoded scene against renders of the original")
+    e.add_argument("reference", type=Path, help="the uncompressed scene (.ply)")
+    e.add_argument("candidate", type=Path, help="a .symgs archive or a decoded .ply, .spz or .compressed.ply")
+    e.add_argument("--views", type=int, default=8, help="held-out cameras around the scene")
+    e.add_argument("--resolution", type=int, default=256)
+    e.add_argument("--json", action="store_true", help="print the figures as JSON")
+    e.set_defaults(func=_evaluate)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    import torch
+
+    from symgs_core.export import import_scene
+    from symgs_core.optimize import evaluate
+    from symgs_core.pipeline import decompress
+    from symgs_core.ply import load_scene
+    from symgs_core.views import self_supervised_views
+
+    for path in (args.reference, args.candidate):
+        if not path.is_file():
+            raise CliError(f"file not found: {path}")
+    try:
+        reference = load_scene(args.reference)
+        is_archive = args.candidate.suffix.lower() == ".symgs"
+        candidate = decompress(args.candidate) if is_archive else import_scene(args.candidate)
+        views = self_supervised_views(reference, 1, args.views, args.resolution, torch.zeros(3))
+    except ValueError as exc:  # PlyError, ArchiveError, SpzError, ... all name the problem
+        raise CliError(str(exc)) from exc
+    value, ssim_value = evaluate(candidate, views.test, views.background)
+    figures = {
+        "reference": str(args.reference), "candidate": str(args.candidate), "bytes": args.candidate.stat().st_size,
+        "gaussians": len(candidate), "psnr": None if value == float("inf") else value, "ssim": ssim_value,
+        "views": args.views, "resolution": args.resolution,
+    }  # fmt: skip
+    if args.json:
+        print(json.dumps(figures))
+    else:
+        psnr = "identical renders" if figures["psnr"] is None else f"PSNR {value:.2f} dB"
+        print(f"{args.candidate}: {figures['bytes']} bytes, {len(candidate)} Gaussians, {psnr}, SSIM {ssim_value:.4f}"
+              f" over {args.views} views at {args.resolution}px")
     return 0

@@ -1,0 +1,53 @@
+"""`symgs compress`, `decompress` and `evaluate` on files: results that decode, and clean errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from service.cli import main
+from symgs_core.ply import load_scene, save_scene
+from symgs_core.synthetic import synthetic_scene
+
+FAST = ["--iterations", "5", "--resolution", "48", "--train-views", "4", "--eval-views", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "chair.ply"
+    save_scene(synthetic_scene("global", n=1200, seed=2).scene, path)
+    return path
+
+
+def test_compress_decompress_evaluate(scene_file, tmp_path, capsys):
+    archive, report, decoded = tmp_path / "a.symgs", tmp_path / "r.json", tmp_path / "d.ply"
+    assert (
+        main(["compress", str(scene_file), "-o", str(archive), "--report", str(report), "--max-levels", "1", *FAST])
+        == 0
+    )
+    figures = json.loads(report.read_text())
+    assert figures["output_bytes"] == archive.stat().st_size
+    assert main(["decompress", str(archive), "-o", str(decoded)]) == 0
+    assert len(load_scene(decoded)) == figures["gaussians"]["decoded"]
+    capsys.readouterr()
+    assert main(["evaluate", str(scene_file), str(archive), "--views", "2", "--resolution", "48", "--json"]) == 0
+    from_archive = json.loads(capsys.readouterr().out)
+    assert main(["evaluate", str(scene_file), str(decoded), "--views", "2", "--resolution", "48", "--json"]) == 0
+    from_ply = json.loads(capsys.readouterr().out)
+    assert from_archive["gaussians"] == from_ply["gaussians"] == figures["gaussians"]["decoded"]
+    assert from_archive["psnr"] == pytest.approx(from_ply["psnr"], abs=1e-6)  # the .ply is the archive, decoded
+    assert from_archive["psnr"] is None or from_archive["psnr"] > 30.0
+
+
+def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
+    corrupt = tmp_path / "corrupt.symgs"
+    corrupt.write_bytes(b"\x89SYMGS\r\n" + b"\x00" * 40)
+    assert main(["decompress", str(corrupt), "-o", str(tmp_path / "x.ply")]) == 2
+    assert main(["evaluate", str(scene_file), str(corrupt)]) == 2
+    assert main(["compress", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "m.symgs")]) == 2
+    not_ply = tmp_path / "not.ply"
+    not_ply.write_text("hello")
+    assert main(["compress", str(not_ply), "-o", str(tmp_path / "n.symgs"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "error" in err and "Traceback" not in err
