@@ -18,6 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-peers", action="store_true", help="skip .spz, compressed PLY and SOG")
     p.add_argument("--no-match", action="store_true", help="skip the run matched to the .spz v3 PSNR")
     p.add_argument("--peer-cache", type=Path, help="keep and reuse the peers' results in this folder")
+    p.add_argument("--peer-timeout", type=float, default=1800.0, help="seconds before a peer's run is given up")
     p.add_argument("--resolution", type=int, default=192)
     p.add_argument("--train-views", type=int, default=24)
     p.add_argument("--eval-views", type=int, default=8)
@@ -50,7 +51,7 @@ def _bench(args: argparse.Namespace) -> int:
     for scene in args.scenes:
         try:
             rows += bench_scene(scene, presets=presets, config=config, mirrors=mirrors, peers=not args.no_peers,
-                                match=not args.no_match, peer_cache=args.peer_cache,
+                                match=not args.no_match, peer_cache=args.peer_cache, peer_timeout=args.peer_timeout,
                                 progress=lambda m: print(m, flush=True))  # fmt: skip
         except ValueError as exc:
             raise CliError(f"{scene}: {exc}") from exc

@@ -69,13 +69,15 @@ def _psnr(scene: GaussianScene, views: ViewSet) -> float:
     return evaluate(scene, views.test, views.background)[0]
 
 
-def _run(args: list[str]) -> None:
-    done = subprocess.run(args, capture_output=True, text=True, timeout=1800)
+def _run(args: list[str], timeout: float) -> None:
+    done = subprocess.run(args, capture_output=True, text=True, timeout=timeout)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(args[:2])} failed: {done.stderr.strip()[-500:]}")
 
 
-def _peers(ply: Path, name: str, source: GaussianScene, views: ViewSet, exe: str | None, work: Path) -> list[BenchRow]:
+def _peers(
+    ply: Path, name: str, source: GaussianScene, views: ViewSet, exe: str | None, work: Path, timeout: float, say
+) -> list[BenchRow]:  # noqa: ANN001 - say: Callable[[str], None]
     from .export import read_spz, write_spz
     from .ply import load_scene
 
@@ -97,12 +99,16 @@ def _peers(ply: Path, name: str, source: GaussianScene, views: ViewSet, exe: str
         ("sog (splat-transform)", "peer.sog", ["-g", "cpu"]),
     ):
         out, back = work / target, work / f"{target}.ply"
-        t0 = time.perf_counter()
-        _run([exe, "-w", "-q", str(ply), str(out), *extra])
-        encode = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        _run([exe, "-w", "-q", str(out), str(back)])
-        decode = time.perf_counter() - t0
+        try:
+            t0 = time.perf_counter()
+            _run([exe, "-w", "-q", str(ply), str(out), *extra], timeout)
+            encode = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            _run([exe, "-w", "-q", str(out), str(back)], timeout)
+            decode = time.perf_counter() - t0
+        except (RuntimeError, subprocess.TimeoutExpired) as exc:  # one peer failing leaves the others standing
+            say(f"  {entry}: skipped ({str(exc)[:200]})")
+            continue
         decoded = load_scene(back)
         rows.append(BenchRow(name, entry, "-", None, out.stat().st_size, ply_bytes / out.stat().st_size,
                              _psnr(decoded, views), encode, decode, len(decoded)))  # fmt: skip
@@ -132,12 +138,13 @@ def bench_scene(
     peers: bool = True,
     match: bool = True,
     peer_cache: Path | None = None,
+    peer_timeout: float = 1800.0,
     progress=None,  # noqa: ANN001 - Callable[[str], None]
 ) -> list[BenchRow]:
     """Every entry for one scene; ``config`` gives the views, iterations and levels every run of ours shares.
 
     ``peer_cache``: a folder where the peers' rows are kept per scene file and view settings, and reused (SOG's
-    k-means alone takes many minutes on a CPU).
+    k-means alone takes many minutes on a CPU). A peer that fails or runs past ``peer_timeout`` seconds is left out.
     """
     from .ply import load_scene
 
@@ -155,7 +162,7 @@ def bench_scene(
             if cached is not None and cached.exists():
                 found = [BenchRow(**r) for r in json.loads(cached.read_text())]
             else:
-                found = _peers(ply, name, source, views, find_splat_transform(), Path(tmp))
+                found = _peers(ply, name, source, views, find_splat_transform(), Path(tmp), peer_timeout, say)
                 if cached is not None:
                     cached.parent.mkdir(parents=True, exist_ok=True)
                     cached.write_text(json.dumps([asdict(r) for r in found]))

@@ -89,7 +89,8 @@ def prune(
     """Remove stored Gaussians whose total weight over the training views is below a threshold (pixels).
 
     ``thresholds`` are tried boldest first; the first removal that keeps the held-out PSNR at or above ``floor``,
-    as it is or after ``iterations`` Adam steps of fine-tuning (planes frozen), is returned; None if none does.
+    as it is or, when it misses by less than 1 dB, after ``iterations`` Adam steps of fine-tuning (planes frozen),
+    is returned; None if none does.
     """
     weight = contributions(state, [cam for cam, _ in train])
     for t in thresholds:
@@ -100,7 +101,7 @@ def prune(
         pruned = LevelState(state.stored.select(keep.to(state.stored.device)), state.normals, state.offsets,
                             state.bits[keep.to(state.bits.device)])  # fmt: skip
         value, _ = evaluate(pruned.expanded(), test, background)
-        if value < floor and iterations:  # a short fine-tune may win back what the removal cost
+        if floor - 1.0 < value < floor and iterations:  # a short fine-tune may win back a small loss, not more
             pruned = optimize_level(pruned, train, background, iterations=iterations, extent=extent, train_planes=0)
             value, _ = evaluate(pruned.expanded(), test, background)
         if value >= floor:

@@ -10,11 +10,13 @@ level group), which is what makes position differences small.
     log-scales  q = round((s - origin) / step)
     opacity     quantised as alpha = sigmoid(logit) (what the renderer blends); alpha 0 decodes to the lowest logit
                 the PLY reader keeps, which the renderer skips (alpha < 1/255)
-    SH DC       q = round((dc - origin) / step) per channel
+    SH DC       q = round((dc - origin) / step) per channel, stored as (G, R - G, B - G) when that codes smaller
 Log-scales, opacity and DC colour that already lie on a uniform grid (``native_grid``: scenes decoded from 8-bit
 formats) are quantised on that grid, exactly, or on whole multiples of its step when the step asked for is coarser.
     SH rest     one step per band; a Gaussian's degree is the highest band with a non-zero symbol, stored as its own
-                column, and only the bands up to it are stored: bands dropped by ``prune.reduce_sh`` cost nothing
+                column, and only the bands up to it are stored: bands dropped by ``prune.reduce_sh`` cost nothing;
+                each band's channels decorrelated as for DC where that codes smaller (measured: 6-14% of SH bytes
+                on playbot, 9-27% of DC bytes on four of the real scenes, nothing on the donut)
 """
 
 from __future__ import annotations
@@ -80,7 +82,7 @@ def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: st
 
 
 def native_grid(values: np.ndarray, step: float, *, through_zero: bool = False) -> tuple[float, float] | None:
-    """(step, origin) of a uniform grid ``values`` already lie on, taken in whole multiples near ``step``; else None.
+    """(step, origin) of a uniform grid ``values`` already lie on, in whole multiples up to ``step``; else None.
 
     Scenes decoded from other compressed formats hold attributes on such grids (8-bit colours and alphas of `.splat`
     and `.spz`, their 1/16 log-scale steps). Quantising on the same grid keeps those values exact, at the cost of
@@ -100,7 +102,29 @@ def native_grid(values: np.ndarray, step: float, *, through_zero: bool = False) 
         if abs(origin / gap - round(origin / gap)) > GRID_TOLERANCE:
             return None
         origin = 0.0
-    return gap * max(1, round(step / gap)), origin
+    # Whole multiples at or below the step asked for: the grid's own step whenever that is less than twice as fine.
+    return gap * max(1, math.floor(step / gap)), origin
+
+
+def _decorrelate(q: np.ndarray) -> np.ndarray:
+    """RGB symbols [..., 3] -> (G, R - G, B - G): an exact integer transform; colour channels move together."""
+    return np.stack([q[..., 1], q[..., 0] - q[..., 1], q[..., 2] - q[..., 1]], axis=-1)
+
+
+def _correlate(d: np.ndarray) -> np.ndarray:
+    """Inverse of ``_decorrelate``."""
+    return np.stack([d[..., 1] + d[..., 0], d[..., 0], d[..., 2] + d[..., 0]], axis=-1)
+
+
+def _smaller(q: np.ndarray, shape: tuple[int, int]) -> tuple[bytes, bool]:
+    """The smaller coding of RGB symbols ``q`` [..., 3] as a table of ``shape``: as they are, or decorrelated."""
+    plain, mixed = encode_table(q.reshape(shape)), encode_table(_decorrelate(q).reshape(shape))
+    return (mixed, True) if len(mixed) < len(plain) else (plain, False)
+
+
+def _flag(params: dict[str, Any], key: str, codec: str) -> None:
+    if type(params.get(key)) is not bool:
+        raise ArchiveError("bad_header", f"{codec}: parameter {key}={params.get(key)!r:.40} must be true or false")
 
 
 def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
@@ -245,17 +269,21 @@ class ShDcCodec:
     def encode(self, values: np.ndarray) -> EncodedSection:
         x = _finite(values, self.name)
         step, origin = native_grid(x, self.step) or (self.step, 0.0)
-        q = _grid(x, origin, step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": step})
+        payload, mixed = _smaller(_grid(x, origin, step, self.name), (len(x), 3))
+        params = {"origin": origin, "step": step, "decorrelate": mixed}
+        return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"origin", "step"}, self.name)
+        _keys(params, {"origin", "step", "decorrelate"}, self.name)
         _step(params, self.name)
         _number(params, "origin", self.name)
+        _flag(params, "decorrelate", self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        return (params["origin"] + _symbols(payload, shape[0], 3, self.name) * params["step"]).astype(np.float32)
+        q = _symbols(payload, shape[0], 3, self.name)
+        q = _correlate(q) if params["decorrelate"] else q
+        return (params["origin"] + q * params["step"]).astype(np.float32)
 
 
 def band_slices(degree: int) -> list[slice]:
@@ -280,27 +308,31 @@ class ShRestCodec:
         x = _finite(values, self.name)
         if len(self.steps) < degree:
             raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
-        bands = [_grid(x[:, s, :].reshape(n, -1), 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
-        present = np.stack([b.any(axis=1) for b in bands], axis=1) if bands else np.zeros((n, 0), dtype=bool)
+        bands = [_grid(x[:, s, :], 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
+        present = np.stack([b.any(axis=(1, 2)) for b in bands], axis=1) if bands else np.zeros((n, 0), dtype=bool)
         # Degree of each Gaussian: the highest band with a non-zero symbol (0 when none).
         per = np.zeros(n, dtype=np.int64)
         if degree:
             per = np.where(present.any(axis=1), degree - np.argmax(present[:, ::-1], axis=1), 0)
-        parts = [encode_table(per[:, None])]
+        parts, mixed = [encode_table(per[:, None])], []
         for lvl, band in enumerate(bands, start=1):
-            parts.append(encode_table(band[per >= lvl].reshape(-1, 1)))
+            kept = band[per >= lvl]
+            coded, flag = _smaller(kept, (kept.size, 1))
+            parts.append(coded)
+            mixed.append(flag)
         payload = b"".join(len(p).to_bytes(4, "little") + p for p in parts)
-        params = {"steps": [float(s) for s in self.steps[:degree]]}
+        params = {"steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
         return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"steps"}, self.name)
+        _keys(params, {"steps", "decorrelate"}, self.name)
         degree = {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]]
-        steps = params["steps"]
-        if not isinstance(steps, list) or len(steps) != degree:
-            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} for SH degree {degree}")
-        for s in steps:
+        steps, mixed = params["steps"], params["decorrelate"]
+        if not isinstance(steps, list) or len(steps) != degree or not isinstance(mixed, list) or len(mixed) != degree:
+            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} and decorrelate for SH degree {degree}")
+        for s, m in zip(steps, mixed):
             _step({"step": s}, self.name)
+            _flag({"decorrelate": m}, "decorrelate", self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
@@ -324,8 +356,9 @@ class ShRestCodec:
         for lvl, (rows, step) in enumerate(zip(band_slices(degree), params["steps"]), start=1):
             keep = per >= lvl
             width = (rows.stop - rows.start) * 3
-            q = _symbols(parts[lvl], int(keep.sum()) * width, 1, self.name)
-            values = (q.astype(np.float32) * np.float32(step)).reshape(-1, rows.stop - rows.start, 3)
+            q = _symbols(parts[lvl], int(keep.sum()) * width, 1, self.name).reshape(-1, rows.stop - rows.start, 3)
+            q = _correlate(q) if params["decorrelate"][lvl - 1] else q
+            values = q.astype(np.float32) * np.float32(step)
             if len(values) == n:  # every Gaussian keeps this band: a slice, not a masked scatter
                 out[:, rows, :] = values
             else:

@@ -146,7 +146,7 @@ def test_quantized_archive_encoding_is_pinned() -> None:
     assert hashlib.sha256(data).hexdigest() == PINNED
 
 
-PINNED = "b756aff7f00f8297a4eabb471a4778ad4617049954823d2528e8b787c405212c"
+PINNED = "493d1b13a57eb32d783c62d60aa75f9040a1035645955802b3efd6acd75010b3"
 
 
 @pytest.mark.parametrize(
@@ -156,8 +156,10 @@ PINNED = "b756aff7f00f8297a4eabb471a4778ad4617049954823d2528e8b787c405212c"
         (PositionCodec(1.0), (4, 3), {"origin": [0, 0], "step": 1.0}),
         (RotationCodec(1.0), (4, 4), {"step": float("nan")}),
         (OpacityCodec(0.1), (4,), {"step": 2.0}),
-        (ShRestCodec((0.1,)), (4, 3, 3), {"steps": [0.1, 0.1]}),
-        (ShDcCodec(0.1), (4, 3), {"origin": 0.0, "step": 0.1, "extra": 1}),
+        (ShRestCodec((0.1,)), (4, 3, 3), {"steps": [0.1, 0.1], "decorrelate": [False, False]}),
+        (ShRestCodec((0.1,)), (4, 3, 3), {"steps": [0.1], "decorrelate": [1]}),
+        (ShDcCodec(0.1), (4, 3), {"origin": 0.0, "step": 0.1, "decorrelate": False, "extra": 1}),
+        (ShDcCodec(0.1), (4, 3), {"origin": 0.0, "step": 0.1, "decorrelate": 0}),
     ],
 )
 def test_impossible_parameters_are_refused_before_decoding(codec, shape, params) -> None:  # noqa: ANN001
@@ -195,7 +197,7 @@ def test_attributes_on_a_grid_of_their_own_are_kept_on_it() -> None:
     dc = ((rng.integers(0, 256, size=(3000, 3)) / 255.0 - 0.5) / c0).astype(np.float32)
     out, _ = _roundtrip(ShDcCodec(0.001), dc)  # finer than the grid: the grid itself
     assert np.abs(out - dc).max() < 1e-5
-    out, _ = _roundtrip(ShDcCodec(0.05), dc)  # coarser: every 4th grid value (step 4/(255 C0) = 0.0556)
+    out, _ = _roundtrip(ShDcCodec(0.06), dc)  # coarser: every 4th grid value (step 4/(255 C0) = 0.0556)
     cells = (out.astype(np.float64) - dc.min()) * 255 * c0
     assert np.abs(cells - 4 * np.round(cells / 4)).max() < 1e-3
     logits = np.log((a := rng.integers(1, 255, size=3000) / 255.0) / (1 - a)).astype(np.float32)
@@ -207,3 +209,20 @@ def test_attributes_on_a_grid_of_their_own_are_kept_on_it() -> None:
     trained = rng.normal(size=(3000, 3)).astype(np.float32)  # no grid: the step asked for
     out, _ = _roundtrip(ShDcCodec(0.02), trained)
     assert 0.009 < np.abs(out - trained).max() <= 0.01 + 1e-6
+
+
+def test_colour_channels_that_move_together_are_stored_decorrelated() -> None:
+    rng = np.random.default_rng(9)
+    grey = rng.normal(size=(4000, 1))
+    dc = (grey + 0.02 * rng.normal(size=(4000, 3))).astype(np.float32)
+    coded = ShDcCodec(0.01).encode(dc)
+    assert coded.params["decorrelate"] is True
+    out, _ = _roundtrip(ShDcCodec(0.01), dc)
+    assert np.abs(out - dc).max() <= 0.005 + 1e-6
+    independent = rng.normal(size=(4000, 3)).astype(np.float32)
+    assert ShDcCodec(0.01).encode(independent).params["decorrelate"] is False
+    rest = (np.repeat(rng.normal(size=(2000, 8, 1)), 3, axis=2) * 0.3).astype(np.float32)
+    coded = ShRestCodec((0.01, 0.01)).encode(rest)
+    assert coded.params["decorrelate"] == [True, True]
+    out, _ = _roundtrip(ShRestCodec((0.01, 0.01)), rest)
+    assert np.abs(out - rest).max() <= 0.005 + 1e-6
