@@ -36,7 +36,6 @@ class LevelRecord:
     left: int
     right: int
     coverage: float
-    gate: float | None
     psnr_before: float
     psnr_after: float
     ssim: float
@@ -44,6 +43,7 @@ class LevelRecord:
     seconds: float
     accepted: bool
     reason: str
+    gate: float | None = None  # colour-agreement gate of the membership tried (None: geometry alone)
 
     def as_dict(self) -> dict:
         return asdict(self)

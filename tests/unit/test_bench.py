@@ -17,8 +17,8 @@ from symgs_core.synthetic import synthetic_scene
 
 def test_budget_for_floor_inverts_the_self_supervised_floor() -> None:
     for floor in (38.0, 45.5, 61.6):
-        budget = budget_for_floor(floor, 33.0)
-        assert CompressConfig(psnr_budget=budget).self_supervised_floor() == pytest.approx(floor)
+        budget = budget_for_floor(floor, 30.0)
+        assert CompressConfig(psnr_budget=budget, nominal_psnr=30.0).self_supervised_floor() == pytest.approx(floor)
 
 
 def test_bench_writes_a_table_and_two_charts(tmp_path, monkeypatch, capsys) -> None:  # noqa: ANN001
