@@ -35,7 +35,6 @@ _REGION_SCORE = 0.4  # ... and the mean score of its voxel on its side this: cha
 _PRIOR_COUNT = 1.5  # unmatched pseudo-Gaussians added to every voxel: a lone matched Gaussian is a speck
 _VOXEL_SPACINGS = 6.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
-_CHANCE_VOXELS = 0.1  # share of the voxels whose Gaussians measure the chance coverage
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 50_000
 _LN2 = math.log(2.0)
@@ -102,8 +101,11 @@ class Matcher:
         # On a surface a voxel holds about (voxel / 2 spacing)^2 Gaussians: the local spacing follows from its count,
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
         local = 0.5 * voxel / np.sqrt(counts[self.voxel])
-        chosen = rng.random(counts.size) < _CHANCE_VOXELS
-        self.chance_sample = np.nonzero(chosen[self.voxel])[0]  # whole voxels, so their region means are exact
+        # Whole voxels, in random order up to about _SAMPLE Gaussians, so that their region means are exact.
+        order = rng.permutation(counts.size)
+        chosen = np.zeros(counts.size, dtype=bool)
+        chosen[order[: int(np.searchsorted(np.cumsum(counts[order]), _SAMPLE)) + 1]] = True
+        self.chance_sample = np.nonzero(chosen[self.voxel])[0]
         self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
 
     def sides(self, normal: Tensor, offset: float) -> Sides:
@@ -127,7 +129,7 @@ class Matcher:
 
     def chance_coverage(self, planes: int, seed: int) -> float:
         """Share of the Gaussians that random planes (random normals through random Gaussians) match, estimated on
-        the Gaussians of a random tenth of the voxels: what any plane explains by chance here. Coarse or cluttered
+        the Gaussians of random voxels: what any plane explains by chance here. Coarse or cluttered
         sets match much more by chance than finely sampled surfaces do."""
         gen = torch.Generator().manual_seed(seed)
         idx = self.chance_sample

@@ -14,8 +14,9 @@ class Mirror:
     """One mirror, in the coordinates of the scene given to ``detect``.
 
     plane     n.x = offset, normal canonical (its largest-magnitude component positive)
-    votes     raw votes in the 3x3x3 cells around the accumulator peak
-    left      [L] indices of the Gaussians kept and reflected
+    votes     votes in the 3x3x3 accumulator cells around the peak
+    left      [L] indices of the Gaussians kept and reflected: the side of the plane with more matched Gaussians
+              (on a tie, the side the normal points to)
     right     [R] indices of the Gaussians the reflected left ones cover (dropped)
     out       [O] the rest of this level's working set
     coverage  (|left| + |right|) / working set size
