@@ -232,6 +232,7 @@ def _chart(rows: list[BenchRow], x: str, xlabel: str, title: str) -> bytes:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     scenes = sorted({r.scene for r in rows})
     cols = min(3, len(scenes))
@@ -239,12 +240,18 @@ def _chart(rows: list[BenchRow], x: str, xlabel: str, title: str) -> bytes:
                              squeeze=False)  # fmt: skip
     finite = [r.psnr for r in rows if math.isfinite(r.psnr)]
     top = (max(finite) + 5.0) if finite else 60.0
+    def label(r: BenchRow) -> str:
+        return r.entry if r.entry != "symgs" else f"symgs {r.preset} mirrors {'on' if r.mirrors else 'off'}"
+
+    labels = sorted({label(r) for r in rows})
+    colours = {name: plt.get_cmap("tab20")(i % 20) for i, name in enumerate(labels)}  # one colour per entry
     for ax, scene in zip(axes.flat, scenes):
         for r in (r for r in rows if r.scene == scene):
-            label = r.entry if r.entry != "symgs" else f"symgs {r.preset} mirrors {'on' if r.mirrors else 'off'}"
             marker = "o" if r.entry.startswith("symgs") else "s"
-            ax.scatter(getattr(r, x), r.psnr if math.isfinite(r.psnr) else top, marker=marker, label=label)
+            ax.scatter(getattr(r, x), r.psnr if math.isfinite(r.psnr) else top, marker=marker, label=label(r),
+                       color=colours[label(r)])  # fmt: skip
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_title(scene)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("PSNR vs uncompressed (dB; top row: lossless)")

@@ -82,16 +82,17 @@ def fit_quantization(
     """The coarsest multiple of ``start`` whose decoded scene keeps the held-out PSNR at or above ``floor``.
 
     The quantisation error grows as the square of the step, so each try rescales the steps by the square root of
-    (error allowed / error measured), aiming at 90% of what is allowed; it stops at the first pass within
-    ``slack_db`` of the floor, or after ``max_tries`` renders. None when no try passes (the caller then stores the
-    attributes losslessly).
+    (error allowed / error measured), aiming at 95% of what is allowed, and bisects between the coarsest pass and
+    the finest failure when that aim falls outside them; it stops at the first pass within ``slack_db`` of the
+    floor, when pass and failure lie within 4% of each other, or after ``max_tries`` renders. None when no try
+    passes (the caller then stores the attributes losslessly).
     """
     if math.isinf(floor):
         return None
     allowed = psnr_to_mse(floor) - psnr_to_mse(psnr_before)
     if allowed <= 0:
         return None
-    factor, best, tries = 1.0, None, []
+    factor, best, failed, tries = 1.0, None, math.inf, []
     for _ in range(max_tries):
         steps = start.scaled(factor)
         decoded = LevelState(quantized(state.stored, steps), state.normals, state.offsets, state.bits)
@@ -101,10 +102,15 @@ def fit_quantization(
             best = QuantFit(steps, factor, value, tries)
             if value < floor + slack_db:
                 break
+        elif value < floor:
+            failed = min(failed, factor)
         error = psnr_to_mse(value) - psnr_to_mse(psnr_before)
-        proposal = factor * 8.0 if error <= 0 else factor * math.sqrt(0.9 * allowed / error)
+        proposal = factor * 8.0 if error <= 0 else factor * math.sqrt(0.95 * allowed / error)
         proposal = float(np.clip(proposal, factor / 8.0, factor * 8.0))
-        if best is not None and proposal <= best.factor * 1.1:
+        low = best.factor if best is not None else 0.0
+        if not low < proposal < failed:  # the model overshot what the renders have bracketed: bisect instead
+            proposal = math.sqrt(low * failed) if low > 0 and math.isfinite(failed) else proposal
+        if best is not None and (failed / best.factor < 1.04 or proposal <= best.factor * 1.02):
             break
         factor = proposal
     if best is not None:
