@@ -408,6 +408,7 @@ def synthetic_scene(
     seed: int = 0,
     sh_degree: int = 0,
     parts: int = 8,
+    objects: int = 2,
     capture: Capture = "twins",
     noise: float = 0.0,
     clutter: float = 0.0,
@@ -415,10 +416,11 @@ def synthetic_scene(
 ) -> SyntheticScene:
     """A scene of about ``n`` object Gaussians (plus clutter) with planted mirrors.
 
-    kind      "global": one symmetric object; "local": a big and a small symmetric object, apart, mirrors of
-              different orientations; "nested": a symmetric object whose kept half holds a smaller symmetric object
-              (the second plane, inside ``left[0]``); "asymmetric": lumpy parts with no mirror at all
+    kind      "global": one symmetric object; "local": ``objects`` symmetric objects of decreasing sizes, apart,
+              mirrors of different orientations; "nested": a symmetric object whose kept half holds a smaller
+              symmetric object (the second plane, inside ``left[0]``); "asymmetric": lumpy parts with no mirror at all
     parts     parts per object (two of them straddle the mirror)
+    objects   symmetric objects of a "local" scene, 1..7
     capture   "twins": the halves are exact reflections; "independent": each half sampled on its own
     noise     std of positional noise on the object Gaussians, as a fraction of the object's size (about 1)
     clutter   asymmetric extra Gaussians, as a fraction of the object Gaussians
@@ -428,6 +430,8 @@ def synthetic_scene(
         raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
     if n < 16:
         raise ValueError(f"a synthetic scene needs n >= 16 Gaussians, got {n}")
+    if not 1 <= objects <= 7:
+        raise ValueError(f"objects must be 1..7, got {objects}")
     if noise < 0 or clutter < 0:
         raise ValueError(f"noise and clutter must be non-negative, got noise={noise}, clutter={clutter}")
     k = SH_REST_COUNT[sh_degree]
@@ -446,16 +450,22 @@ def synthetic_scene(
         scene = obj.scene
         planes, lefts, rights = [x_plane, obj.sub[0]], [obj.left, obj.sub[1]], [obj.right, obj.sub[2]]
     elif kind == "local":
-        big = _Design.random(gen, int(n * 0.65), parts, k).whole(gen, capture)
-        small = _Design.random(gen, n - len(big.scene), max(parts // 2, 3), k).whole(gen, capture)
-        direction = torch.nn.functional.normalize(torch.randn(3, generator=gen), dim=0)
-        poses = [
-            Pose(tuple(_random_quat(gen).tolist())),
-            Pose(tuple(_random_quat(gen).tolist()), tuple((2.2 * direction).tolist()), 0.5),
-        ]
-        scene = GaussianScene.cat([apply_pose(big.scene, poses[0]), apply_pose(small.scene, poses[1])])
-        planes = [p.apply_plane(x_plane) for p in poses]
-        lefts, rights = [big.left, small.left + len(big.scene)], [big.right, small.right + len(big.scene)]
+        # Object i gets a share 0.54^i of the Gaussians and half the size of the first; the others sit apart from
+        # it along the axes of a random frame.
+        shares = torch.tensor([0.54**i for i in range(objects)])
+        counts = (shares / shares.sum() * n).long().tolist()
+        axes = quat_to_matrix(_random_quat(gen))
+        scenes = []
+        for i, count in enumerate(counts):
+            obj = _Design.random(gen, count, parts if i == 0 else max(parts // 2, 3), k).whole(gen, capture)
+            where = torch.zeros(3) if i == 0 else 2.2 * axes[:, (i - 1) % 3] * (1.0 if i <= 3 else -1.0)
+            pose = Pose(tuple(_random_quat(gen).tolist()), tuple(where.tolist()), 1.0 if i == 0 else 0.5)
+            base = sum(len(sc) for sc in scenes)
+            scenes.append(apply_pose(obj.scene, pose))
+            planes.append(pose.apply_plane(x_plane))
+            lefts.append(obj.left + base)
+            rights.append(obj.right + base)
+        scene = GaussianScene.cat(scenes)
     elif kind == "asymmetric":
         blobs = _asymmetric_parts(gen, parts, k)
         scene = _sample_parts(blobs, _allocate(blobs, n), gen, k)

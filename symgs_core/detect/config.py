@@ -55,7 +55,7 @@ class DetectConfig:
     axis_ratio: float = 1.5
     chunk: int = 1 << 20
     refine_iters: int = 6
-    icp_iters: int = 5
+    icp_iters: int = 8
     match_tolerance: float = 2.0
     attribute_weight: float = 0.6
     min_coverage: float = 0.15

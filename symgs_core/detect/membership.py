@@ -33,8 +33,9 @@ _AXIS_SCALE = 0.1
 _OWN_SCORE = 0.5  # a Gaussian is matched when its own score reaches this ...
 _REGION_SCORE = 0.4  # ... and the mean score of its voxel on its side this: chance matches are specks, not regions
 _PRIOR_COUNT = 1.5  # unmatched pseudo-Gaussians added to every voxel: a lone matched Gaussian is a speck
-_VOXEL_SPACINGS = 6.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
+_VOXEL_SPACINGS = 8.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
+_ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 50_000
 _LN2 = math.log(2.0)
@@ -169,16 +170,18 @@ class Matcher:
         side: np.ndarray,
         k: int,
         weight: float | None,
+        widen: float = 1.0,
     ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """Best match score [M] of Gaussians ``idx`` [M] among their k nearest Gaussians across the plane, that
         Gaussian [M] (its own index where none), the attribute weight used (computed here when None), and the
-        geometric score [M] of the best match."""
+        geometric score [M] of the best match. ``widen`` scales the tolerance."""
         reflected = self.p[idx] - 2.0 * d[idx, None] * n
         # Two tolerances out a match scores 1/16: nothing farther is worth finding.
-        err, hit = self._other_side(reflected, idx, side, d, 2.0 * self.tolerance * float(self.spacing.max()), k)
+        tolerance = widen * self.tolerance
+        err, hit = self._other_side(reflected, idx, side, d, 2.0 * tolerance * float(self.spacing.max()), k)
         found = np.isfinite(err)
         hit = np.where(found, hit, idx[:, None])
-        tau = (self.tolerance * self.spacing[idx])[:, None]
+        tau = (tolerance * self.spacing[idx])[:, None]
         geo = np.where(found, np.exp(-_LN2 * (np.where(found, err, 0.0) / tau) ** 2), 0.0)
         agree = self._agreement(np.repeat(idx, hit.shape[1]), hit.ravel(), n).reshape(hit.shape)
         w = self._attribute_trust(geo, agree) if weight is None else weight
@@ -188,36 +191,42 @@ class Matcher:
         return scores[rows, best], hit[rows, best], w, geo[rows, best]
 
     def refine(self, normal: Tensor, offset: float, iters: int) -> tuple[Tensor, float]:
-        """Iterated closest points on (a sample of) the Gaussians that match for the starting plane: pair each,
-        reflected, with the nearest Gaussian of the other side within twice the tolerance, fit the plane to those
-        pairs (``fit_reflection``), repeat. Only matching Gaussians take part, so that Gaussians of unrelated parts do
-        not pull a local plane. Returns the refined unit normal [3] (float64) and offset."""
+        """Iterated closest points on (a sample of) the Gaussians that match for the current plane: pair each,
+        reflected, with the nearest Gaussian of the other side, fit the plane to those pairs (``fit_reflection``),
+        repeat. Only Gaussians that match take part, so that those of unrelated parts do not pull a local plane.
+        The first half of the steps starts with a three times wider tolerance, narrowing, so that a start a few cells
+        off still finds its pairs; the second half chooses its Gaussians again and keeps the tolerance.
+        Returns the refined unit normal [3] (float64) and offset."""
         n = normal.detach().to(torch.float64).cpu().numpy()
         g = float(offset)
-        d = self.p @ n - g
-        score, _, _, _ = self._scores(self.sample, d, n, g, d > 0, k=1, weight=None)
-        idx = self.sample[score >= _OWN_SCORE]
-        a = self.p[idx]
-        tau = self.tolerance * self.spacing[idx]
-        for _ in range(iters):
-            d = a @ n - g
-            err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1)
-            good = np.nonzero((err < 2.0 * tau) & ((self.p[hit] @ n - g) * d < 0))[0]
-            if good.size < 8:
-                break
-            # Matches that look alike and lie close weigh most: clutter that happens to land near a surface does not.
-            geo = np.exp(-_LN2 * (err[good] / tau[good]) ** 2)
-            agree = self._agreement(idx[good], hit[good], n)
-            w = self._attribute_trust(geo, agree)
-            h = hit[good]
-            new_n, new_g = fit_reflection(
-                a[good], self.p[h], self.axis[h], self.flat[h], geo * (1.0 - w + w * agree), n, g
-            )
-            moved = math.acos(min(1.0, abs(float(new_n @ n)))) + abs(new_g - g)
-            n, g = new_n, new_g
-            if moved < 1e-7:
-                break
+        wide = iters // 2
+        for stage, steps in enumerate((wide, iters - wide)):
+            start = _ICP_WIDEN if stage == 0 else 1.0
+            d = self.p @ n - g
+            score, _, _, _ = self._scores(self.sample, d, n, g, d > 0, k=1, weight=None, widen=start)
+            idx = self.sample[score >= _OWN_SCORE]
+            for it in range(steps):
+                widen = max(1.0, start - (start - 1.0) * it / max(steps - 1, 1))
+                n, g, moved = self._icp_step(idx, n, g, widen * self.tolerance * self.spacing[idx])
+                if not moved:
+                    break
         return torch.from_numpy(n), g
+
+    def _icp_step(self, idx: np.ndarray, n: np.ndarray, g: float, tau: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        """One refinement step on Gaussians ``idx`` with tolerances ``tau``; False when too few pairs remain."""
+        a = self.p[idx]
+        d = a @ n - g
+        err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1)
+        good = np.nonzero((err < 2.0 * tau) & ((self.p[hit] @ n - g) * d < 0))[0]
+        if good.size < 8:
+            return n, g, False
+        # Matches that look alike and lie close weigh most: clutter that happens to land near a surface does not.
+        geo = np.exp(-_LN2 * (err[good] / tau[good]) ** 2)
+        agree = self._agreement(idx[good], hit[good], n)
+        w = self._attribute_trust(geo, agree)
+        h = hit[good]
+        new_n, new_g = fit_reflection(a[good], self.p[h], self.axis[h], self.flat[h], geo * (1 - w + w * agree), n, g)
+        return new_n, new_g, True
 
     def _other_side(
         self, reflected: np.ndarray, idx: np.ndarray, side: np.ndarray, d: np.ndarray, cutoff: float, k: int

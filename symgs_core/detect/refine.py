@@ -26,12 +26,14 @@ def refine_from_pairs(
     dirs = diff / length[:, None]
     mid = ((xi + xj) / 2).to(torch.float64)
     n = n.to(dirs.device)
-    for _ in range(iters):
+    for it in range(iters):
+        # The window narrows from three cells to one: first towards the middle of the vote cloud, then onto its mode.
+        shrink = max(1.0, 3.0 - 2.0 * it / max(iters - 1, 1))
         cos = dirs @ n
         aligned = dirs * torch.where(cos < 0, -1.0, 1.0)[:, None].to(dirs.dtype)
         angle = torch.acos(cos.abs().clamp(max=1.0))
         resid = mid @ n - g
-        w = torch.exp(-0.5 * (angle / angle_scale) ** 2 - 0.5 * (resid / offset_scale) ** 2)
+        w = torch.exp(-0.5 * (angle / (shrink * angle_scale)) ** 2 - 0.5 * (resid / (shrink * offset_scale)) ** 2)
         if not float(w.sum()) > 0:
             break
         pulled = (w[:, None] * length[:, None] * aligned).sum(0)

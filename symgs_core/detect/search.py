@@ -22,7 +22,7 @@ from .refine import refine_from_pairs
 from .result import Mirror
 
 _MAX_OFFSET = 1.0  # planes farther than the robust radius from the centre cut off (almost) nothing
-_REFINE_WINDOW = 2  # cells around the peak whose votes feed the refinement
+_REFINE_WINDOW = 5  # cells around the peak whose votes feed the refinement
 _SUPPRESS_WINDOW = 4  # cells around a rejected peak cleared before the next candidate
 _SAME_PLANE_CELLS = 4  # a candidate this many cells from a known mirror is that mirror again
 _SPARE_PEAKS = 2  # peaks per candidate or known mirror: one plane may leave a peak or two

@@ -82,19 +82,19 @@ def test_exact_twins_give_the_planted_halves() -> None:
     assert float(nearest.median()) < 1e-3 * normalised_frame(s.scene.means, 0.99).radius
 
 
-def test_two_local_mirrors_found_larger_first_with_their_halves() -> None:
-    s = synthetic_scene("local", n=5000, seed=1, clutter=0.1, pose=Pose.random(1))
-    mirrors = detect(s.scene, DetectConfig(max_mirrors=2))
-    assert len(mirrors) == 2
+def test_local_mirrors_of_different_sizes_found_larger_first_with_their_halves() -> None:
+    s = synthetic_scene("local", n=8000, seed=1, objects=3, clutter=0.1, pose=Pose.random(1))
+    mirrors = detect(s.scene, DetectConfig(max_mirrors=3))
+    assert len(mirrors) == 3
     for m, plane, left, right in zip(mirrors, s.planes, s.left, s.right, strict=True):
         assert angle_deg(m.plane, plane) < 0.5
         precision, recall = precision_recall(m, left, right)
         assert precision >= 0.95 and recall >= 0.95
-    assert len(mirrors[0].left) > len(mirrors[1].left)
-    # Level 1 searched what level 0 kept.
-    assert mirrors[1].level == 1
-    kept = set(mirrors[0].left.tolist()) | set(mirrors[0].out.tolist())
-    assert_partition(mirrors[1], kept)
+    assert len(mirrors[0].left) > len(mirrors[1].left) > len(mirrors[2].left)
+    # Level l searched what level l - 1 kept.
+    for previous, m in zip(mirrors, mirrors[1:], strict=False):
+        assert m.level == previous.level + 1
+        assert_partition(m, set(previous.left.tolist()) | set(previous.out.tolist()))
 
 
 def test_nested_mirror_found_inside_the_kept_half() -> None:

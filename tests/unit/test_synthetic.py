@@ -43,9 +43,9 @@ def test_twin_halves_are_exact_reflections_under_any_pose(kind: str) -> None:
 
 
 def test_planes_are_ordered_by_size_and_nested_mirror_lies_in_the_kept_half() -> None:
-    local = synthetic_scene("local", n=3000, seed=1)
+    local = synthetic_scene("local", n=6000, seed=1, objects=4)
     sizes = [len(a) + len(b) for a, b in zip(local.left, local.right, strict=True)]
-    assert sizes[0] > sizes[1]
+    assert len(local.planes) == 4 and sizes == sorted(sizes, reverse=True) and sizes[-1] > 200
     nested = synthetic_scene("nested", n=3000, seed=1)
     kept = set(nested.left[0].tolist())
     assert set(nested.left[1].tolist()) <= kept and set(nested.right[1].tolist()) <= kept
@@ -144,6 +144,8 @@ def test_invalid_arguments_are_rejected() -> None:
         synthetic_scene(n=100, sh_degree=4)
     with pytest.raises(ValueError, match="n >= 16"):
         synthetic_scene(n=3)
+    with pytest.raises(ValueError, match="objects"):
+        synthetic_scene("local", n=100, objects=0)
     with pytest.raises(ValueError, match="clutter"):
         synthetic_scene(n=100, clutter=-0.1)
     with pytest.raises(ValueError, match="scale"):
