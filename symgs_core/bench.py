@@ -227,6 +227,14 @@ def to_markdown(rows: list[BenchRow]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _short(value: float) -> str:
+    """Tick labels: 200k, 1.5M, 0.5 (bytes or seconds)."""
+    for unit, scale in (("M", 1e6), ("k", 1e3)):
+        if value >= scale:
+            return f"{value / scale:g}{unit}"
+    return f"{value:g}"
+
+
 def _chart(rows: list[BenchRow], x: str, xlabel: str, title: str) -> bytes:
     import matplotlib
 
@@ -251,6 +259,8 @@ def _chart(rows: list[BenchRow], x: str, xlabel: str, title: str) -> bytes:
             ax.scatter(getattr(r, x), r.psnr if math.isfinite(r.psnr) else top, marker=marker, label=label(r),
                        color=colours[label(r)])  # fmt: skip
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: _short(v)))
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_title(scene)
         ax.set_xlabel(xlabel)
