@@ -275,7 +275,7 @@ def _new_part(gen: torch.Generator, shape: Shape, half: Tensor, centre: Tensor, 
         sh=band[:, None] * torch.randn(k, 3, generator=gen),
         warp=torch.cat(
             [
-                torch.stack([_uv(gen, 0.1, 0.2, 4), _uv(gen, 3.0, 7.0, 4), _uv(gen, 0.0, 2 * math.pi, 4)], dim=1),
+                torch.stack([_uv(gen, 0.2, 0.35, 4), _uv(gen, 3.0, 7.0, 4), _uv(gen, 0.0, 2 * math.pi, 4)], dim=1),
                 torch.nn.functional.normalize(torch.randn(4, 3, generator=gen), dim=1),
             ],
             dim=1,

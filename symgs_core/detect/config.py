@@ -37,6 +37,7 @@ class DetectConfig:
                                             working set (what matches by chance)
     max_mirrors                             levels searched; each repeats detection on left + out
     candidates                              peaks tried per level, best first, until one passes min_coverage
+    min_votes                               peaks with fewer votes (3x3x3 cells) are noise, never tried
     min_gaussians                           a working set smaller than this is not searched
     seed                                    seed of the pair sampling
     """
@@ -62,11 +63,12 @@ class DetectConfig:
     min_significance: float = 2.0
     max_mirrors: int = 4
     candidates: int = 3
+    min_votes: int = 5
     min_gaussians: int = 32
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("colour_bins", "opacity_bins", "scale_bins", "pair_budget", "chunk", "candidates"):
+        for name in ("colour_bins", "opacity_bins", "scale_bins", "pair_budget", "chunk", "candidates", "min_votes"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")

@@ -98,8 +98,8 @@ def _detect_level(
     chance: float | None = None
     tried: list[tuple[Tensor, float]] = []
     for coord, peak_votes in peaks:
-        if len(tried) == config.candidates:
-            break
+        if len(tried) == config.candidates or peak_votes < config.min_votes:
+            break  # peaks come strongest first
         normal, offset = spec.plane(coord)
         near = (vote_coords - coord.to(vote_coords)).abs().amax(dim=1) <= _REFINE_WINDOW
         xi, xj = x[votes_i[near].long()], x[votes_j[near].long()]
