@@ -36,6 +36,7 @@ _PRIOR_COUNT = 1.5  # unmatched pseudo-Gaussians added to every voxel: a lone ma
 _VOXEL_SPACINGS = 8.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
 _ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
+_ICP_CONVERGED = 1e-7  # ... and stops when a step moves the plane less (radians plus offset)
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 50_000
 _LN2 = math.log(2.0)
@@ -207,26 +208,28 @@ class Matcher:
             idx = self.sample[score >= _OWN_SCORE]
             for it in range(steps):
                 widen = max(1.0, start - (start - 1.0) * it / max(steps - 1, 1))
-                n, g, moved = self._icp_step(idx, n, g, widen * self.tolerance * self.spacing[idx])
-                if not moved:
+                new_n, new_g = self._icp_step(idx, n, g, widen * self.tolerance * self.spacing[idx])
+                moved = math.acos(min(1.0, abs(float(new_n @ n)))) + abs(new_g - g)
+                n, g = new_n, new_g
+                if moved < _ICP_CONVERGED and widen == 1.0:
                     break
         return torch.from_numpy(n), g
 
-    def _icp_step(self, idx: np.ndarray, n: np.ndarray, g: float, tau: np.ndarray) -> tuple[np.ndarray, float, bool]:
-        """One refinement step on Gaussians ``idx`` with tolerances ``tau``; False when too few pairs remain."""
+    def _icp_step(self, idx: np.ndarray, n: np.ndarray, g: float, tau: np.ndarray) -> tuple[np.ndarray, float]:
+        """One refinement step on Gaussians ``idx`` with tolerances ``tau``; the plane unchanged when fewer than 8
+        pairs are found."""
         a = self.p[idx]
         d = a @ n - g
         err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1)
         good = np.nonzero((err < 2.0 * tau) & ((self.p[hit] @ n - g) * d < 0))[0]
         if good.size < 8:
-            return n, g, False
+            return n, g
         # Matches that look alike and lie close weigh most: clutter that happens to land near a surface does not.
         geo = np.exp(-_LN2 * (err[good] / tau[good]) ** 2)
         agree = self._agreement(idx[good], hit[good], n)
         w = self._attribute_trust(geo, agree)
         h = hit[good]
-        new_n, new_g = fit_reflection(a[good], self.p[h], self.axis[h], self.flat[h], geo * (1 - w + w * agree), n, g)
-        return new_n, new_g, True
+        return fit_reflection(a[good], self.p[h], self.axis[h], self.flat[h], geo * (1 - w + w * agree), n, g)
 
     def _other_side(
         self, reflected: np.ndarray, idx: np.ndarray, side: np.ndarray, d: np.ndarray, cutoff: float, k: int
