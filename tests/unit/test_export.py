@@ -164,3 +164,21 @@ def test_fast_ply_writer_matches_the_reference_writer(tmp_path) -> None:  # noqa
     (tmp_path / "ours.ply").write_bytes(ours)
     back = load_scene(tmp_path / "ours.ply")
     assert all(torch.equal(back.tensors()[k], v) for k, v in scene.tensors().items() if k != "quats")
+
+
+def test_decompress_command_writes_the_format_the_extension_names(tmp_path, capsys) -> None:  # noqa: ANN001
+    from service.cli import main
+    from symgs_core.codec import ArchiveContents, encode_archive
+
+    scene = scene_for_export(n=300, degree=1)
+    archive = tmp_path / "scene.symgs"
+    archive.write_bytes(encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {})))
+    for name, read in (("out.spz", read_spz), ("out.compressed.ply", read_compressed_ply)):
+        assert main(["decompress", str(archive), "-o", str(tmp_path / name)]) == 0
+        assert len(read((tmp_path / name).read_bytes())) == 300
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "v4.spz"), "--spz-version", "4"]) == 0
+    assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP"
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "out.ply")]) == 0
+    assert import_scene(tmp_path / "out.ply").means.equal(scene.means)
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "out.splat")]) == 2
+    assert "unsupported export format" in capsys.readouterr().err
