@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import statistics
 import subprocess
@@ -25,15 +26,18 @@ import sys
 import time
 from pathlib import Path
 
-import torch
+# Waiting OpenMP threads must sleep, not spin, on a shared machine (see symgs_core/__init__.py); before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from symgs_core.detect import DetectConfig, detect
-from symgs_core.detect.clusters import attributes, cluster
-from symgs_core.detect.frame import normalised_frame
-from symgs_core.detect.grid import GridSpec, smooth
-from symgs_core.detect.pairs import enumerate_pairs
-from symgs_core.mirror import Plane
-from symgs_core.synthetic import Pose, synthetic_scene
+import torch  # noqa: E402
+
+from symgs_core.detect import DetectConfig, detect  # noqa: E402
+from symgs_core.detect.clusters import attributes, cluster  # noqa: E402
+from symgs_core.detect.frame import normalised_frame  # noqa: E402
+from symgs_core.detect.grid import GridSpec, smooth  # noqa: E402
+from symgs_core.detect.pairs import enumerate_pairs  # noqa: E402
+from symgs_core.mirror import Plane  # noqa: E402
+from symgs_core.synthetic import Pose, synthetic_scene  # noqa: E402
 
 PLANE_STEPS = ("frame", "cluster", "pairs", "vote", "peak", "refine")
 ALL_PAIRS_CHUNK = 1 << 22
@@ -300,6 +304,7 @@ def main() -> None:
     real = [real_scene(p, args.real, args.max_mirrors) for p in sorted(args.real.rglob("*.ply"))] if args.real else []
     command = "python benchmarks/bench_detect.py " + " ".join(sys.argv[1:])
     print(_markdown(results, real, command))
+    print(f"\nLoad average at the end (1, 5, 15 min): {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
     if args.json:
         args.json.write_text(json.dumps({"synthetic": results, "real": real}, indent=2, default=str))
 
