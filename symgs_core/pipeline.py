@@ -142,19 +142,27 @@ def compress(
 
     t0 = time.perf_counter()
     report("encode", 0.0, "encoding archive")
-    coded = reduce_and_encode(
-        LevelState.plain(source),
-        state,
-        views.train,
-        views.test,
-        background,
-        config=config,
-        floor=floor,
-        reference=reference_psnr,
-        extent=radius,
-        meta=meta,
-        report=report,
-    )
+
+    def encode(levels: LevelState):  # noqa: ANN202 - stages.Coded
+        return reduce_and_encode(
+            LevelState.plain(source), levels, views.train, views.test, background, config=config, floor=floor,
+            reference=reference_psnr, extent=radius, meta=meta, report=report,
+        )  # fmt: skip
+
+    coded = encode(state)
+    plain_codec_bytes = None
+    if state.normals.shape[0] and config.preset != "lossless":
+        # Mirrors spend budget the quantiser could have spent: keep them only if the whole result is smaller than
+        # the same stages without them (a scene is never made worse than the plain codec makes it).
+        report("encode", 0.5, "encoding without mirrors, to compare")
+        plain = encode(LevelState.plain(source))
+        plain_codec_bytes = len(plain.archive)
+        if plain_codec_bytes <= len(coded.archive):
+            coded = plain
+            for record in records:
+                if record.accepted:
+                    record.accepted = False
+                    record.reason = "within budget, but the plain codec alone made a smaller archive"
     state, archive, baseline = coded.state, coded.archive, coded.baseline
     report.timed("encode", time.perf_counter() - t0)
 
@@ -170,6 +178,7 @@ def compress(
         "baseline_bytes": len(baseline),
         "ratio_to_ply": input_bytes / len(archive) if input_bytes else None,
         "ratio_to_baseline": len(baseline) / len(archive),
+        "plain_codec_bytes": plain_codec_bytes,
         "gaussians": {"input": len(source), "stored": len(state.stored), "decoded": len(decoded)},
         "levels": [r.as_dict() for r in records],
         "stages": coded.stages,

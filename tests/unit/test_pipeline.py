@@ -156,3 +156,14 @@ def test_progress_is_monotone_and_cancel_stops(symmetric):
     calls = iter(range(1000))
     with pytest.raises(Cancelled):
         compress(symmetric.scene, config=FAST, should_stop=lambda: next(calls) > 5)
+
+
+def test_quantised_result_is_never_larger_than_the_plain_codec(symmetric):
+    report = compress(symmetric.scene, config=CompressConfig(**{**FAST.__dict__, "preset": "balanced"})).report
+    assert report["codec"]["preset"] == "balanced"
+    if any(lv["accepted"] for lv in report["levels"]):
+        assert report["plain_codec_bytes"] is not None
+        assert report["output_bytes"] < report["plain_codec_bytes"]
+    else:  # mirrors were refused or did not pay: the result is the plain codec's
+        assert report["gaussians"]["decoded"] == report["gaussians"]["stored"]
+    assert report["psnr"] >= report["psnr_floor"] - 1e-6
