@@ -32,6 +32,9 @@ _PUBLIC = {
     "Mirror": "detect",
     "compress": "pipeline",
     "decompress": "pipeline",
+    "CompressConfig": "config",
+    "export_scene": "export",
+    "import_scene": "export",
 }
 
 __all__ = sorted(_PUBLIC)
