@@ -35,6 +35,7 @@ _REGION_SCORE = 0.4  # ... and the mean score of its voxel on its side this: cha
 _PRIOR_COUNT = 1.5  # unmatched pseudo-Gaussians added to every voxel: a lone matched Gaussian is a speck
 _VOXEL_SPACINGS = 8.0  # voxel side, in typical spacings (about 9 Gaussians per voxel on a surface)
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
+_DEEP = 16  # nearest Gaussians searched for one across the plane, for reflections that land near it
 _ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
 _ICP_CONVERGED = 1e-7  # ... and stops when a step moves the plane less (radians plus offset)
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
@@ -179,7 +180,7 @@ class Matcher:
         reflected = self.p[idx] - 2.0 * d[idx, None] * n
         # Two tolerances out a match scores 1/16: nothing farther is worth finding.
         tolerance = widen * self.tolerance
-        err, hit = self._other_side(reflected, idx, side, d, 2.0 * tolerance * float(self.spacing.max()), k)
+        err, hit = self._other_side(reflected, idx, side, 2.0 * tolerance * float(self.spacing.max()), k)
         found = np.isfinite(err)
         hit = np.where(found, hit, idx[:, None])
         tau = (tolerance * self.spacing[idx])[:, None]
@@ -220,7 +221,8 @@ class Matcher:
         pairs are found."""
         a = self.p[idx]
         d = a @ n - g
-        err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1)
+        err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1, distance_upper_bound=2.0 * float(tau.max()))
+        hit = np.minimum(hit, self.p.shape[0] - 1)  # misses: index n, distance inf
         good = np.nonzero((err < 2.0 * tau) & ((self.p[hit] @ n - g) * d < 0))[0]
         if good.size < 8:
             return n, g
@@ -232,7 +234,7 @@ class Matcher:
         return fit_reflection(a[good], self.p[h], self.axis[h], self.flat[h], geo * (1 - w + w * agree), n, g)
 
     def _other_side(
-        self, reflected: np.ndarray, idx: np.ndarray, side: np.ndarray, d: np.ndarray, cutoff: float, k: int
+        self, reflected: np.ndarray, idx: np.ndarray, side: np.ndarray, cutoff: float, k: int
     ) -> tuple[np.ndarray, np.ndarray]:
         """The k nearest Gaussians on the other side of the plane to the reflections [M, 3] of Gaussians ``idx``:
         distances [M, k] (inf beyond ``cutoff`` or on the own side) and indices [M, k]."""
@@ -241,23 +243,18 @@ class Matcher:
         err, hit = err.reshape(-1, k), np.minimum(hit.reshape(-1, k), self.p.shape[0] - 1)  # misses: n, err inf
         own = side[idx]
         crossed = side[hit] != own[:, None]
-        # A reflection lands |d| beyond the plane, so hits on its own side only happen near the plane or where the
-        # other side has nothing close; where none crossed, look again among the other side's Gaussians near the plane.
+        # A reflection lands |d| beyond the plane, so hits on its own side only happen near the plane (or where the
+        # other side has nothing close); where none crossed, look deeper among the nearest for those that do.
         redo = np.nonzero(~crossed.any(axis=1) & np.isfinite(err[:, 0]))[0]
         err = np.where(crossed, err, np.inf)
-        for this_side in (True, False):
-            mine = redo[own[redo] == this_side]
-            if mine.size == 0:
-                continue
-            band = np.nonzero((side != this_side) & (np.abs(d) <= cutoff + np.abs(d[idx[mine]]).max()))[0]
-            if band.size == 0:
-                continue
-            kb = min(k, band.size)
-            e, h = _query(cKDTree(self.p[band]), reflected[mine], k=kb, distance_upper_bound=cutoff)
-            e, h = e.reshape(-1, kb), h.reshape(-1, kb)
-            err[mine, :kb] = e
-            hit[mine, :kb] = np.where(np.isfinite(e), band[np.minimum(h, band.size - 1)], hit[mine, :kb])
-        err[err > cutoff] = np.inf
+        if redo.size:
+            kk = min(_DEEP, self.p.shape[0])
+            e, h = _query(self.tree, reflected[redo], k=kk, distance_upper_bound=cutoff)
+            e, h = e.reshape(-1, kk), np.minimum(h.reshape(-1, kk), self.p.shape[0] - 1)
+            e = np.where(side[h] != own[redo, None], e, np.inf)
+            first = np.argsort(e, axis=1, kind="stable")[:, :k]
+            err[redo] = np.take_along_axis(e, first, axis=1)
+            hit[redo] = np.take_along_axis(h, first, axis=1)
         return err, hit
 
     def _attribute_trust(self, geo: np.ndarray, agree: np.ndarray) -> float:
