@@ -104,12 +104,12 @@ class Matcher:
         # On a surface a voxel holds about (voxel / 2 spacing)^2 Gaussians: the local spacing follows from its count,
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
         local = 0.5 * voxel / np.sqrt(counts[self.voxel])
+        self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
         # Whole voxels, in random order up to about _SAMPLE Gaussians, so that their region means are exact.
         order = rng.permutation(counts.size)
         chosen = np.zeros(counts.size, dtype=bool)
         chosen[order[: int(np.searchsorted(np.cumsum(counts[order]), _SAMPLE)) + 1]] = True
         self.chance_sample = np.nonzero(chosen[self.voxel])[0]
-        self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
 
     def sides(self, normal: Tensor, offset: float) -> Sides:
         """Membership for the plane normal.x = offset (normal [3] unit). The side with more matched Gaussians is
@@ -120,7 +120,7 @@ class Matcher:
         empty = torch.zeros(0, dtype=torch.long, device=self.device)
         if side.all() or not side.any():
             return Sides(empty, empty)
-        matched, hit = self._matched(np.arange(len(d)), d, n, offset, side)
+        matched, hit = self._matched(np.arange(len(d)), d, n, side)
         # A covered Gaussian needs a matched coverer, and a coverer a matched Gaussian to cover.
         cover = matched & matched[hit]
         keep_side = side if (cover & side).sum() >= (cover & ~side).sum() else ~side
@@ -132,8 +132,8 @@ class Matcher:
 
     def chance_coverage(self, planes: int, seed: int) -> float:
         """Share of the Gaussians that random planes (random normals through random Gaussians) match, estimated on
-        the Gaussians of random voxels: what any plane explains by chance here. Coarse or cluttered
-        sets match much more by chance than finely sampled surfaces do."""
+        the Gaussians of random voxels: what any plane explains by chance here. Coarse or cluttered sets match much
+        more by chance than finely sampled surfaces do."""
         gen = torch.Generator().manual_seed(seed)
         idx = self.chance_sample
         shares = []
@@ -141,20 +141,20 @@ class Matcher:
             n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0).numpy()
             offset = float(self.p[int(torch.randint(self.p.shape[0], (1,), generator=gen))] @ n)
             d = self.p @ n - offset
-            matched, _ = self._matched(idx, d, n, offset, d > 0)
+            matched, _ = self._matched(idx, d, n, d > 0)
             shares.append(float(matched.mean()) if matched.size else 0.0)
         return float(np.mean(shares)) if shares else 0.0
 
     def _matched(
-        self, idx: np.ndarray, d: np.ndarray, n: np.ndarray, offset: float, side: np.ndarray
+        self, idx: np.ndarray, d: np.ndarray, n: np.ndarray, side: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Whether each of the Gaussians ``idx`` [M] (whole voxels) is matched, and the Gaussian [M] matching it."""
-        score, hit, w, geo = self._scores(idx, d, n, offset, side, k=1, weight=None)
+        score, hit, w, geo = self._scores(idx, d, n, side, k=1, weight=None)
         # With noise the twin need not be the very nearest: where the nearest is close but does not look alike, try
         # the next few (where the nearest is not close, the next few are farther still).
         retry = np.nonzero((score < _OWN_SCORE) & (geo >= 0.5))[0]
         if retry.size:
-            score_r, hit_r, _, _ = self._scores(idx[retry], d, n, offset, side, k=_CANDIDATES, weight=w)
+            score_r, hit_r, _, _ = self._scores(idx[retry], d, n, side, k=_CANDIDATES, weight=w)
             better = score_r > score[retry]
             score[retry[better]] = score_r[better]
             hit[retry[better]] = hit_r[better]
@@ -168,13 +168,13 @@ class Matcher:
         idx: np.ndarray,
         d: np.ndarray,
         n: np.ndarray,
-        offset: float,
         side: np.ndarray,
         k: int,
         weight: float | None,
         widen: float = 1.0,
     ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-        """Best match score [M] of Gaussians ``idx`` [M] among their k nearest Gaussians across the plane, that
+        """Best match score [M] of Gaussians ``idx`` [M] among their k nearest Gaussians across the plane (signed
+        distances ``d`` [N] of all Gaussians to it, unit normal ``n`` [3], ``side`` [N] = d > 0), that
         Gaussian [M] (its own index where none), the attribute weight used (computed here when None), and the
         geometric score [M] of the best match. ``widen`` scales the tolerance."""
         reflected = self.p[idx] - 2.0 * d[idx, None] * n
@@ -205,7 +205,7 @@ class Matcher:
         for stage, steps in enumerate((wide, iters - wide)):
             start = _ICP_WIDEN if stage == 0 else 1.0
             d = self.p @ n - g
-            score, _, _, _ = self._scores(self.sample, d, n, g, d > 0, k=1, weight=None, widen=start)
+            score, _, _, _ = self._scores(self.sample, d, n, d > 0, k=1, weight=None, widen=start)
             idx = self.sample[score >= _OWN_SCORE]
             for it in range(steps):
                 widen = max(1.0, start - (start - 1.0) * it / max(steps - 1, 1))
