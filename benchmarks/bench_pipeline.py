@@ -44,8 +44,12 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="*", default=[], type=Path)
     parser.add_argument("--synthetic", nargs="*", default=[], help="global | nested | local | asymmetric")
     parser.add_argument("--capture", default="independent", choices=["twins", "independent"])
-    parser.add_argument("--jitter", type=float, default=0.0,
-                        help="independent noise on every attribute but positions, so twins are not bit-identical")
+    parser.add_argument(
+        "--jitter",
+        type=float,
+        default=0.0,
+        help="independent noise on every attribute but positions, so twins are not bit-identical",
+    )
     parser.add_argument("--n", type=int, default=20000)
     parser.add_argument("--sh-degree", type=int, default=1)
     parser.add_argument("--iterations", type=int, default=200)
@@ -61,8 +65,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     config = CompressConfig(
-        preset=args.preset, psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
-        resolution=args.resolution, train_views=args.train_views, eval_views=args.eval_views, device="cpu",
+        preset=args.preset,
+        psnr_budget=args.psnr_budget,
+        max_levels=args.max_levels,
+        iterations=args.iterations,
+        resolution=args.resolution,
+        train_views=args.train_views,
+        eval_views=args.eval_views,
+        device="cpu",
     )
     gen = torch.Generator().manual_seed(0)
 
@@ -70,18 +80,28 @@ def main() -> None:
         if not args.jitter:
             return scene
         noise = lambda t: t + args.jitter * torch.randn(t.shape, generator=gen)  # noqa: E731
-        return scene.with_(scales=noise(scene.scales), opacities=noise(scene.opacities), sh_dc=noise(scene.sh_dc),
-                           sh_rest=noise(scene.sh_rest))
+        return scene.with_(
+            scales=noise(scene.scales),
+            opacities=noise(scene.opacities),
+            sh_dc=noise(scene.sh_dc),
+            sh_rest=noise(scene.sh_rest),
+        )
 
-    jobs = [(f"synthetic {k} ({args.capture}{f', jitter {args.jitter}' if args.jitter else ''}, n={args.n}, "
-             f"SH {args.sh_degree})",
-             jittered(synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture).scene))
-            for k in args.synthetic]
+    jobs = [
+        (
+            f"synthetic {k} ({args.capture}{f', jitter {args.jitter}' if args.jitter else ''}, n={args.n}, "
+            f"SH {args.sh_degree})",
+            jittered(synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture).scene),
+        )
+        for k in args.synthetic
+    ]
     jobs += [(p.name, p) for p in args.scenes]
     print(f"config: {config}")
     print()
-    print("| scene | levels | input | stored | fewer | baseline B | plain codec B | archive B | vs baseline | PSNR dB | SSIM | "
-          "floor dB | per level PSNR before->after | seconds per stage | wall s |")
+    print(
+        "| scene | levels | input | stored | fewer | baseline B | plain codec B | archive B | vs baseline | PSNR dB | "
+        "SSIM | floor dB | per level PSNR before->after | seconds per stage | wall s |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|")
     reports = {}
     for name, scene in jobs:

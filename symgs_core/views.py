@@ -57,7 +57,9 @@ def _rotated(cams: list[Camera], center: Tensor, seed: int) -> list[Camera]:
     for cam in cams:
         R = cam.R.to(torch.float64) @ q.T
         eye = q @ (cam.center.to(torch.float64) - c) + c
-        out.append(Camera(R.float(), (-R @ eye).float(), cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.name))
+        out.append(
+            Camera(R.float(), (-R @ eye).float(), cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.name)
+        )
     return out
 
 
