@@ -59,6 +59,16 @@ def test_global_mirror_recovered_under_clutter_noise_and_any_pose(seed: int) -> 
     assert mirrors[0].plane == mirrors[0].plane.canonical()
 
 
+def test_plane_on_the_hemisphere_seam_found_end_to_end() -> None:
+    # Unposed, the planted normal is (1, 0, 0): n_z = 0, on the rim where n and -n meet in the accumulator.
+    s = synthetic_scene("global", n=3000, seed=4, clutter=0.2, noise=0.002)
+    assert s.planes[0].normal[2] == 0.0
+    (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
+    assert angle_deg(m.plane, s.planes[0]) < 0.05
+    precision, recall = precision_recall(m, s.left[0], s.right[0])
+    assert precision >= 0.95 and recall >= 0.95
+
+
 def test_real_capture_halves_still_give_the_plane() -> None:
     s = synthetic_scene("global", n=4000, seed=3, capture="independent", clutter=0.2, noise=0.002, pose=Pose.random(3))
     (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
