@@ -13,6 +13,7 @@ import torch
 
 from .config import CompressConfig
 from .gating import colour_mismatch, gated
+from .mirror import Plane
 from .optimize import LevelState, evaluate, optimize_level
 from .scene import GaussianScene
 from .views import ViewSet
@@ -243,7 +244,8 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        mirrors = detect(state.stored, detect_config)
+        accepted = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
+        mirrors = detect(state.stored, detect_config, exclude=accepted)
         report.timed("detect", time.perf_counter() - t0)
         attempts = (
             plan_attempts(state, memberships(state, mirrors[0]), views, floor=floor, config=config) if mirrors else []
