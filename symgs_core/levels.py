@@ -168,7 +168,7 @@ def try_level(
 
 
 def plan_attempts(
-    state: LevelState, options: list[Membership], views: ViewSet, *, floor: float, config: CompressConfig
+    state: LevelState, options: list[Membership], views: ViewSet, *, floor: float
 ) -> list[tuple[Membership, float]]:
     """The memberships worth fine-tuning, loosest first, with their PSNR before the fine-tune.
 
@@ -247,9 +247,7 @@ def run_levels(
         accepted = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
         mirrors = detect(state.stored, detect_config, exclude=accepted)
         report.timed("detect", time.perf_counter() - t0)
-        attempts = (
-            plan_attempts(state, memberships(state, mirrors[0]), views, floor=floor, config=config) if mirrors else []
-        )
+        attempts = plan_attempts(state, memberships(state, mirrors[0]), views, floor=floor) if mirrors else []
         done = True
         for membership, psnr_before in attempts:
             t0 = time.perf_counter()
