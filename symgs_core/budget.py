@@ -10,13 +10,14 @@ the next, and quantisation, which always runs last, takes whatever remains.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from .cameras import Camera
+from .codec.quantize import band_slices
 from .codec.steps import QuantSteps
 from .optimize import LevelState, evaluate
 from .scene import GaussianScene
@@ -50,15 +51,97 @@ def extent_of(stored: GaussianScene) -> float:
     return float((means.max(dim=0).values - means.min(dim=0).values).max())
 
 
-def quantized(stored: GaussianScene, steps: QuantSteps) -> GaussianScene:
-    """``stored`` as a reader of its quantised archive decodes it (every section encoded, then decoded)."""
+def quantized(stored: GaussianScene, steps: QuantSteps, sections: tuple[str, ...] | None = None) -> GaussianScene:
+    """``stored`` as a reader of its quantised archive decodes it (every section encoded, then decoded); only the
+    attributes named in ``sections`` when given, the others exact."""
     codecs = steps.codecs(extent_of(stored))
     out = {}
     for name, value in stored.tensors().items():
+        if sections is not None and name not in sections:
+            out[name] = value.detach().cpu()
+            continue
         array = value.detach().cpu().contiguous().numpy()
         coded = codecs[name].encode(array)
         out[name] = torch.from_numpy(codecs[name].decode(coded.payload, array.shape, coded.params, coded.raw_length))
     return GaussianScene(**out).to(stored.device)
+
+
+# Attributes whose steps are balanced, with their section and coded components per Gaussian (rotations: three).
+_ATTRIBUTES = {"position": ("means", 3), "rotation": ("quats", 3), "scale": ("scales", 3),
+               "opacity": ("opacities", 1), "dc": ("sh_dc", 3)}  # fmt: skip
+_PROBE = 2.0  # steps are probed at twice the start, so attributes already on a grid that fine still show an error
+_MAX_SHIFT = 8.0  # how far balancing may move one attribute's step from the start, either way
+_EXACT = 0.01  # an error per component below this share of the mean counts as none
+
+
+@dataclass
+class Balanced:
+    """Balanced steps, and per attribute the excess MSE measured at the probe and the coded components per Gaussian."""
+
+    steps: QuantSteps
+    errors: dict[str, float]
+    components: dict[str, float]
+
+    @property
+    def order(self) -> list[str]:
+        """Attributes with coded components, the most first: where a coarser step saves the most bytes."""
+        return sorted((k for k, c in self.components.items() if c > 0), key=lambda k: -self.components[k])
+
+
+def _times(steps: QuantSteps, attribute: str, factor: float) -> QuantSteps:
+    """``steps`` with one attribute's step (a key of ``_ATTRIBUTES``, or ``sh1``..``sh3``) times ``factor``."""
+    if attribute.startswith("sh"):
+        band = int(attribute[2:]) - 1
+        return replace(steps, sh=tuple(s * factor if i == band else s for i, s in enumerate(steps.sh)))
+    value = getattr(steps, attribute) * factor
+    return replace(steps, **{attribute: min(value, 0.5) if attribute == "opacity" else value})
+
+
+def balance_steps(
+    state: LevelState, test: list[tuple[Camera, Tensor]], background: Tensor, *, start: QuantSteps, psnr_before: float
+) -> Balanced:
+    """Steps that give every coded component the same share of the error, measured on this scene's renders.
+
+    With entropy-coded uniform quantisers each halving of a step costs one bit per coded component and quarters that
+    attribute's error, so a given total error is cheapest when every component carries the same share of it (the
+    slopes of rate against error are then equal). The shares depend on the scene (how anisotropic its Gaussians
+    are, how much of its colour is view-dependent, which attributes a previous codec already rounded), so each
+    attribute, and each SH band, is quantised alone at twice the ``start`` steps, its excess error over
+    ``psnr_before`` measured on the held-out views, and its step rescaled (error grows as the step squared) to the
+    mean error per component, within a factor of 8 either way.
+    """
+    base = psnr_to_mse(psnr_before)
+    probe = start.scaled(_PROBE)
+    stored = state.stored.detach()
+
+    def excess(scene: GaussianScene) -> float:
+        value, _ = evaluate(LevelState(scene, state.normals, state.offsets, state.bits).expanded(), test, background)
+        return max(psnr_to_mse(value) - base, 0.0)
+
+    errors, components = {}, {}
+    for name, (section, count) in _ATTRIBUTES.items():
+        errors[name], components[name] = excess(quantized(stored, probe, (section,))), float(count)
+    rounded = quantized(stored, probe, ("sh_rest",)).sh_rest if stored.sh_degree else None
+    for lvl, rows in enumerate(band_slices(stored.sh_degree), start=1):
+        mixed = stored.sh_rest.clone()
+        mixed[:, rows] = rounded[:, rows]
+        kept = float((stored.sh_rest[:, rows].abs().amax(dim=(1, 2)) > 0).double().mean())
+        errors[f"sh{lvl}"] = excess(stored.with_(sh_rest=mixed))
+        components[f"sh{lvl}"] = (rows.stop - rows.start) * 3 * kept
+    coded = [k for k in errors if components[k] > 0]
+    mean_error = sum(errors[k] for k in coded) / max(sum(components[k] for k in coded), 1e-12)
+    # An attribute exact at the probe (already on a grid that fine) shows no slope to balance: its step stays.
+    measured = [k for k in coded if errors[k] > _EXACT * mean_error * components[k]]
+    if not measured:
+        return Balanced(start, errors, components)
+    per_component = sum(errors[k] for k in measured) / sum(components[k] for k in measured)
+    ratio = {k: 1.0 for k in errors}
+    for k in measured:
+        ratio[k] = float(np.clip(math.sqrt(per_component * components[k] / errors[k]), 1 / _MAX_SHIFT, _MAX_SHIFT))
+    steps = start
+    for k, r in ratio.items():
+        steps = _times(steps, k, r)
+    return Balanced(steps, errors, components)
 
 
 @dataclass
@@ -67,6 +150,7 @@ class QuantFit:
     factor: float
     psnr: float
     tries: list[dict]
+    probe_errors: dict[str, float] = field(default_factory=dict)  # of ``balance_steps``, when it ran
 
 
 def fit_quantization(
@@ -117,3 +201,61 @@ def fit_quantization(
     if best is not None:
         best.tries = tries
     return best
+
+
+def coarsen_one_by_one(
+    state: LevelState,
+    test: list[tuple[Camera, Tensor]],
+    background: Tensor,
+    fit: QuantFit,
+    *,
+    floor: float,
+    order: list[str],
+    max_tries: int = 8,
+    factor: float = math.sqrt(2.0),
+) -> QuantFit:
+    """Spend what the common factor left of the budget: coarsen one attribute at a time by ``factor``, in ``order``
+    (the attributes most likely to pay first), keeping each change whose renders stay at or above ``floor``.
+
+    One factor for every step lands short of the floor wherever the error jumps instead of growing smoothly (an
+    attribute on a grid of its own is exact up to twice that grid's step, then not), and the last try that passed
+    can sit a decibel or more above the floor. An attribute that fails once is not tried again.
+    """
+    candidates = list(order)
+    best, tries = fit, list(fit.tries)
+    while candidates and len(tries) - len(fit.tries) < max_tries:
+        attribute = candidates[0]
+        steps = _times(best.steps, attribute, factor)
+        decoded = LevelState(quantized(state.stored, steps), state.normals, state.offsets, state.bits)
+        value, _ = evaluate(decoded.expanded(), test, background)
+        tries.append({"coarsen": attribute, "psnr": value})
+        if value >= floor:
+            best = QuantFit(steps, best.factor, value, tries)
+            candidates.append(candidates.pop(0))  # the others get their turn before it comes round again
+        else:
+            candidates.pop(0)
+    best.tries = tries
+    return best
+
+
+def fit_steps(
+    state: LevelState,
+    test: list[tuple[Camera, Tensor]],
+    background: Tensor,
+    *,
+    floor: float,
+    start: QuantSteps,
+    psnr_before: float,
+) -> QuantFit | None:
+    """The quantisation steps for ``floor``: balanced on this scene's renders (``balance_steps``), their common
+    factor fitted (``fit_quantization``), then what is left spent one attribute at a time (``coarsen_one_by_one``).
+    None when no quantisation keeps the floor."""
+    if math.isinf(floor) or psnr_to_mse(floor) <= psnr_to_mse(psnr_before):
+        return None
+    balanced = balance_steps(state, test, background, start=start, psnr_before=psnr_before)
+    fit = fit_quantization(state, test, background, floor=floor, start=balanced.steps, psnr_before=psnr_before)
+    if fit is None:
+        return None
+    fit = coarsen_one_by_one(state, test, background, fit, floor=floor, order=balanced.order)
+    fit.probe_errors = balanced.errors
+    return fit

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from torch import Tensor
 
-from .budget import SHARES, extent_of, fit_quantization, split_budget
+from .budget import SHARES, extent_of, fit_steps, split_budget
 from .codec import ArchiveContents, coding_order, encode_archive
 from .codec.steps import QuantSteps, register_quantized
 from .config import CompressConfig
@@ -138,8 +138,8 @@ def reduce_and_encode(
 
     t0 = time.perf_counter()
     report("encode", 0.3, "fitting quantisation steps")
-    fit = fit_quantization(state, test, background, floor=floors["quantization"], start=PRESET_STEPS[config.preset],
-                           psnr_before=psnr)  # fmt: skip
+    fit = fit_steps(state, test, background, floor=floors["quantization"], start=PRESET_STEPS[config.preset],
+                    psnr_before=psnr)  # fmt: skip
     report.timed("quantize", time.perf_counter() - t0)
     if fit is None:  # nothing lossy fits the budget that is left: store the attributes exactly
         archive = write_archive(state, meta)
@@ -155,5 +155,5 @@ def reduce_and_encode(
     stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0,
                          codec=codec))  # fmt: skip
     quantization = {"steps": fit.steps.as_dict(), "factor": fit.factor, "floor": floors["quantization"],
-                    "floors": floors, "shares": SHARES}  # fmt: skip
+                    "floors": floors, "shares": SHARES, "probe_errors": fit.probe_errors}  # fmt: skip
     return Coded(state, archive, write_archive(source_state, meta, codec), codec, stages, quantization)

@@ -1,0 +1,74 @@
+"""Steps balanced on the scene's own renders, and the one-attribute-at-a-time spending of what the fit leaves."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from symgs_core.budget import _ATTRIBUTES, balance_steps, coarsen_one_by_one, fit_quantization, fit_steps, quantized
+from symgs_core.codec.steps import QuantSteps, register_quantized
+from symgs_core.optimize import LevelState, evaluate
+from symgs_core.stages import write_archive
+from symgs_core.synthetic import synthetic_scene
+from symgs_core.views import self_supervised_views
+
+FLOOR = 42.0
+# Positions far finer than their share of the error: a start that balancing has to move.
+SKEWED = replace(QuantSteps(), position=QuantSteps().position / 64.0)
+
+
+@pytest.fixture(scope="module")
+def setting():
+    scene = synthetic_scene("global", n=700, seed=2, sh_degree=1).scene
+    return LevelState.plain(scene), self_supervised_views(scene, 2, 3, 48, torch.zeros(3))
+
+
+def test_balancing_moves_each_step_against_its_error_per_component(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    balanced = balance_steps(state, views.test, views.background, start=SKEWED, psnr_before=math.inf)
+    assert balanced.steps.position > SKEWED.position * 4  # the over-fine positions were coarsened
+    assert set(balanced.errors) == set(_ATTRIBUTES) | {"sh1"}
+    assert balanced.order[0] == "sh1"  # nine coded components per Gaussian: the most bytes to save
+    # A step moves against its attribute's error per coded component: the more error, the finer, relative to start.
+    ratio = {
+        "position": balanced.steps.position / SKEWED.position, "rotation": balanced.steps.rotation / SKEWED.rotation,
+        "scale": balanced.steps.scale / SKEWED.scale, "opacity": balanced.steps.opacity / SKEWED.opacity,
+        "dc": balanced.steps.dc / SKEWED.dc, "sh1": balanced.steps.sh[0] / SKEWED.sh[0],
+    }  # fmt: skip
+    per_component = {k: balanced.errors[k] / balanced.components[k] for k in ratio}
+    by_error = sorted(ratio, key=per_component.get)
+    assert [ratio[k] for k in by_error] == sorted(ratio.values(), reverse=True)
+    assert ratio["position"] == pytest.approx(8.0)  # capped: balancing moves a step at most 8x
+    assert min(ratio.values()) < 1.0 < max(ratio.values())
+
+
+def test_coarsening_keeps_the_floor_and_never_grows_the_archive(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    fit = fit_quantization(state, views.test, views.background, floor=FLOOR, start=QuantSteps(), psnr_before=math.inf)
+    order = ["position", "rotation", "scale", "opacity", "dc", "sh1"]
+    spent = coarsen_one_by_one(state, views.test, views.background, fit, floor=FLOOR, order=order, max_tries=6)
+    assert FLOOR <= spent.psnr <= fit.psnr
+    decoded = quantized(state.stored, spent.steps)
+    assert evaluate(decoded, views.test, views.background)[0] == pytest.approx(spent.psnr)
+    extent = float((state.stored.means.max(0).values - state.stored.means.min(0).values).max())
+    size = lambda steps: len(write_archive(state, {}, register_quantized("test-coarsen", steps, extent)))  # noqa: E731
+    assert size(spent.steps) <= size(fit.steps)
+    tried = [t for t in spent.tries if "coarsen" in t]
+    assert 0 < len(tried) <= 6
+    accepted = [t for t in tried if t["psnr"] >= FLOOR]  # a failed try leaves the steps as they were
+    assert spent.psnr == (accepted[-1]["psnr"] if accepted else fit.psnr)
+
+
+def test_fitting_from_a_skewed_start_beats_one_common_factor(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    extent = float((state.stored.means.max(0).values - state.stored.means.min(0).values).max())
+    size = lambda steps: len(write_archive(state, {}, register_quantized("test-fit", steps, extent)))  # noqa: E731
+    common = fit_quantization(state, views.test, views.background, floor=FLOOR, start=SKEWED, psnr_before=math.inf)
+    fitted = fit_steps(state, views.test, views.background, floor=FLOOR, start=SKEWED, psnr_before=math.inf)
+    assert common.psnr >= FLOOR and fitted.psnr >= FLOOR
+    assert size(fitted.steps) < 0.95 * size(common.steps)
+    assert fitted.probe_errors and fit_steps(state, views.test, views.background, floor=math.inf, start=SKEWED,
+                                             psnr_before=math.inf) is None  # fmt: skip
