@@ -7,7 +7,8 @@ score, and a Gaussian is matched only where the mean score of its voxel on its s
 forms regions, not specks. The covered Gaussians of one side are dropped (*right*), the Gaussians of the other side
 that cover them are kept and reflected (*left*); everything else is *out*.
 
-The matching runs on the CPU (numpy and scipy) whatever the device of the scene; results go back to that device.
+The matching runs on the CPU (numpy, scipy's KD-tree, one numba kernel) whatever the device of the scene; results go
+back to that device.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit, prange
 from scipy.spatial import cKDTree
 from torch import Tensor
 
@@ -37,9 +39,12 @@ _VOXEL_SPACINGS = 8.0  # voxel side, in typical spacings (about 9 Gaussians per 
 _CANDIDATES = 3  # nearest Gaussians across the plane compared with a reflection that its nearest does not match
 _DEEP = 16  # nearest Gaussians searched for one across the plane, for reflections that land near it
 _ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
-_ICP_CONVERGED = 1e-7  # ... and stops when a step moves the plane less (radians plus offset)
+_ICP_SETTLED = 0.01  # ... and a stage ends once a step moves the plane less than this many typical spacings
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 50_000
+_TRAITS = 7  # scaled attributes per Gaussian: RGB, opacity, three sorted log-scales
+_MORTON_BITS = 21  # per axis: three fit in 64 bits
+_MORTON_SPAN = 2.0  # the order covers coordinates within this many frame radii; beyond, it clamps
 _LN2 = math.log(2.0)
 
 
@@ -69,28 +74,34 @@ class Matcher:
         self.device = points.device
         self.tolerance = tolerance
         self.attribute_weight = attribute_weight
-        self.p = points.detach().to(torch.float64).cpu().numpy()
-        # Attributes scaled so that a unit distance is one agreement scale; axes for the orientation term.
-        self.features = (
-            torch.cat(
-                [
-                    attrs.rgb / _COLOUR_SCALE,
-                    attrs.opacity[:, None] / _OPACITY_SCALE,
-                    attrs.log_scales / _LOG_SCALE_SCALE,
-                ],
-                dim=1,
-            )
-            .float()
-            .cpu()
-            .numpy()
+        p = points.detach().to(torch.float64).cpu().numpy()
+        # Everything is held in a space-filling-curve order: the tree's leaves and the batches of queries then touch
+        # memory in order, which makes building and querying several times faster than in the scene's order.
+        # ``order`` [N] gives the working-set index of each position, ``rank`` [N] the position of each index.
+        self.order = _morton_order(p)
+        self.rank = np.empty_like(self.order)
+        self.rank[self.order] = np.arange(len(self.order))
+        self.p = p.take(self.order, axis=0)
+        # Per Gaussian, in one row so that a pair costs two gathers: its attributes scaled so that a unit distance is
+        # one agreement scale (_TRAITS columns), then its distinct axis (3) for the orientation term.
+        traits = torch.cat(
+            [
+                attrs.rgb / _COLOUR_SCALE,
+                attrs.opacity[:, None] / _OPACITY_SCALE,
+                attrs.log_scales / _LOG_SCALE_SCALE,
+                axes.u,
+            ],
+            dim=1,
         )
-        self.axis = axes.u.float().cpu().numpy()
-        self.round = axes.round.bool().cpu().numpy()
-        self.flat = axes.flat.cpu().numpy()
+        self.traits = traits.float().cpu().numpy().take(self.order, axis=0)
+        self.axis = self.traits[:, _TRAITS:]
+        self.round = axes.round.bool().cpu().numpy()[self.order]
+        self.flat = axes.flat.cpu().numpy()[self.order]
         n = self.p.shape[0]
-        self.tree = cKDTree(self.p)
+        # Sliding-midpoint splits on ordered points build several times faster than median splits and query as fast.
+        self.tree = cKDTree(self.p, balanced_tree=False, compact_nodes=False)
         rng = np.random.default_rng(0)
-        self.sample = np.sort(rng.choice(n, size=min(n, _SAMPLE), replace=False))
+        self.sample = np.sort(self.rank[rng.choice(n, size=min(n, _SAMPLE), replace=False)])
         dist, _ = _query(self.tree, self.p[self.sample], k=min(2, n))
         nearest = dist.reshape(len(self.sample), -1)[:, -1]
         positive = nearest[nearest > 0]
@@ -101,14 +112,15 @@ class Matcher:
         packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
         _, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
         self.voxel = inverse.reshape(-1)
+        self.voxels = counts.size
         # On a surface a voxel holds about (voxel / 2 spacing)^2 Gaussians: the local spacing follows from its count,
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
         local = 0.5 * voxel / np.sqrt(counts[self.voxel])
         self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
         # Whole voxels, in random order up to about _SAMPLE Gaussians, so that their region means are exact.
-        order = rng.permutation(counts.size)
+        shuffled = rng.permutation(counts.size)
         chosen = np.zeros(counts.size, dtype=bool)
-        chosen[order[: int(np.searchsorted(np.cumsum(counts[order]), _SAMPLE)) + 1]] = True
+        chosen[shuffled[: int(np.searchsorted(np.cumsum(counts[shuffled]), _SAMPLE)) + 1]] = True
         self.chance_sample = np.nonzero(chosen[self.voxel])[0]
 
     def sides(self, normal: Tensor, offset: float) -> Sides:
@@ -125,10 +137,10 @@ class Matcher:
         cover = matched & matched[hit]
         keep_side = side if (cover & side).sum() >= (cover & ~side).sum() else ~side
 
-        def t(a: np.ndarray) -> Tensor:
-            return torch.from_numpy(a).to(self.device)
+        def t(mask: np.ndarray) -> Tensor:
+            return torch.from_numpy(np.sort(self.order[mask])).to(self.device)
 
-        return Sides(t(np.nonzero(cover & keep_side)[0]), t(np.nonzero(cover & ~keep_side)[0]))
+        return Sides(t(cover & keep_side), t(cover & ~keep_side))
 
     def chance_coverage(self, planes: int, seed: int) -> float:
         """Share of the Gaussians that random planes (random normals through random Gaussians) match, estimated on
@@ -139,7 +151,7 @@ class Matcher:
         shares = []
         for _ in range(planes):
             n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0).numpy()
-            offset = float(self.p[int(torch.randint(self.p.shape[0], (1,), generator=gen))] @ n)
+            offset = float(self.p[self.rank[int(torch.randint(self.p.shape[0], (1,), generator=gen))]] @ n)
             d = self.p @ n - offset
             matched, _ = self._matched(idx, d, n, d > 0)
             shares.append(float(matched.mean()) if matched.size else 0.0)
@@ -158,9 +170,9 @@ class Matcher:
             better = score_r > score[retry]
             score[retry[better]] = score_r[better]
             hit[retry[better]] = hit_r[better]
-        _, region = np.unique(self.voxel[idx] * 2 + side[idx], return_inverse=True)
-        region = region.reshape(-1)
-        mean = np.bincount(region, weights=score) / (np.bincount(region) + _PRIOR_COUNT)
+        region = self.voxel[idx] * 2 + side[idx]
+        size = 2 * self.voxels
+        mean = np.bincount(region, weights=score, minlength=size) / (np.bincount(region, minlength=size) + _PRIOR_COUNT)
         return (score >= _OWN_SCORE) & (mean[region] >= _REGION_SCORE), hit
 
     def _scores(
@@ -197,7 +209,9 @@ class Matcher:
         reflected, with the nearest Gaussian of the other side, fit the plane to those pairs (``fit_reflection``),
         repeat. Only Gaussians that match take part, so that those of unrelated parts do not pull a local plane.
         The first half of the steps starts with a three times wider tolerance, narrowing, so that a start a few cells
-        off still finds its pairs; the second half chooses its Gaussians again and keeps the tolerance.
+        off still finds its pairs; the second half chooses its Gaussians again and keeps the tolerance. Either half
+        ends early once a step moves the plane by a small fraction of the spacing (tilt in radians, the frame's
+        radius being 1, plus offset): what is left is the jitter of the pairings, not a better plane.
         Returns the refined unit normal [3] (float64) and offset."""
         n = normal.detach().to(torch.float64).cpu().numpy()
         g = float(offset)
@@ -212,7 +226,7 @@ class Matcher:
                 new_n, new_g = self._icp_step(idx, n, g, widen * self.tolerance * self.spacing[idx])
                 moved = math.acos(min(1.0, abs(float(new_n @ n)))) + abs(new_g - g)
                 n, g = new_n, new_g
-                if moved < _ICP_CONVERGED and widen == 1.0:
+                if moved < _ICP_SETTLED * self.typical:
                     break
         return torch.from_numpy(n), g
 
@@ -270,11 +284,59 @@ class Matcher:
     def _agreement(self, i: np.ndarray, j: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Soft agreement [M] in (0, 1] of Gaussians i [M] and j [M] as mirror images across a plane with unit normal
         ``n`` [3]: colour, opacity, sorted sizes, and the reflected distinct axis of i against that of j."""
-        diff = self.features[i] - self.features[j]
-        u_i, u_j = self.axis[i], self.axis[j]
-        nf = n.astype(np.float32)
-        reflected = u_i - 2.0 * (u_i @ nf)[:, None] * nf
-        cos = np.abs(np.einsum("ij,ij->i", reflected, u_j))
-        cos = np.where(self.round[i] | self.round[j], 1.0, cos)  # round Gaussians have no axis to disagree
-        du = (1.0 - cos) / _AXIS_SCALE
-        return np.exp(-0.5 * (np.einsum("ij,ij->i", diff, diff) + du * du))
+        out = np.empty(len(i), dtype=np.float32)
+        _agreement_kernel(self.traits, self.round, i.astype(np.int64), j.astype(np.int64), n.astype(np.float64), out)
+        return out
+
+
+def _compile(fn):  # noqa: ANN001, ANN202 - a numba kernel
+    # Compiled on first use and cached between processes; without a writable cache location, compiled in memory.
+    try:
+        return njit(parallel=True, cache=True, nogil=True)(fn)
+    except RuntimeError:
+        return njit(parallel=True, nogil=True)(fn)
+
+
+@_compile
+def _agreement_kernel(traits, round_, i, j, n, out):  # noqa: ANN001, ANN202
+    """``Matcher._agreement`` into out [M] (float32): one fused pass instead of a dozen array-wide ones."""
+    for r in prange(i.shape[0]):
+        a, b = i[r], j[r]
+        e = 0.0
+        for c in range(_TRAITS):
+            t = float(traits[a, c]) - float(traits[b, c])
+            e += t * t
+        if not (round_[a] or round_[b]):  # round Gaussians have no axis to disagree
+            dot, na, nb = 0.0, 0.0, 0.0
+            for c in range(3):
+                ua, ub = float(traits[a, _TRAITS + c]), float(traits[b, _TRAITS + c])
+                dot += ua * ub
+                na += ua * n[c]
+                nb += ub * n[c]
+            du = (1.0 - abs(dot - 2.0 * na * nb)) / _AXIS_SCALE  # (H u_a) . u_b, H = I - 2 n n^T
+            e += du * du
+        out[r] = math.exp(-0.5 * e)
+
+
+def _morton_order(p: np.ndarray) -> np.ndarray:
+    """Indices [N] that sort points p [N, 3] (normalised frame) along a Morton (Z-order) curve: nearby points end
+    up mostly nearby in the order."""
+    cells = 1 << _MORTON_BITS
+    q = np.clip((p + _MORTON_SPAN) * (cells / (2 * _MORTON_SPAN)), 0, cells - 1).astype(np.uint64)
+    code = np.zeros(len(p), dtype=np.uint64)
+    for axis in range(3):
+        code |= _spread_bits(q[:, axis]) << np.uint64(axis)
+    return np.argsort(code)
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """Each of the low 21 bits of v [N] (uint64) moved to bit 3 i: two zero bits after every bit."""
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
