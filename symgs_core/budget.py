@@ -5,6 +5,12 @@ reference (the input's own PSNR, or +inf against renders of the input) and the f
 shares of it, in the order they run: mirrors up to 60%, pruning up to 70%, SH reduction up to 80%, quantisation up
 to 100%. A stage's floor is the PSNR at its cumulative share, so what an earlier stage leaves unspent passes on to
 the next, and quantisation, which always runs last, takes whatever remains.
+
+Quantisation spends its share in three moves (``fit_steps``): the preset's steps are balanced on the scene's own
+renders so that every coded component carries the same error (``balance_steps``), their common factor is fitted to
+the floor (``fit_quantization``), and what that leaves is spent one attribute at a time (``coarsen_one_by_one``).
+Measured on the plant capture (113k, SH 0) at the 60.36 dB of `.spz` v3: 1,363,595 bytes with one factor for the
+preset's steps, 1,189,936 after all three (13% smaller).
 """
 
 from __future__ import annotations
