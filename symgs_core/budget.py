@@ -217,29 +217,30 @@ def coarsen_one_by_one(
     *,
     floor: float,
     order: list[str],
-    max_tries: int = 8,
-    factor: float = math.sqrt(2.0),
+    max_tries: int = 10,
+    factors: tuple[float, ...] = (math.sqrt(2.0), 2.0**0.25),
 ) -> QuantFit:
-    """Spend what the common factor left of the budget: coarsen one attribute at a time by ``factor``, in ``order``
-    (the attributes most likely to pay first), keeping each change whose renders stay at or above ``floor``.
+    """Spend what the common factor left of the budget: coarsen one attribute at a time, in ``order`` (the
+    attributes most likely to pay first), keeping each change whose renders stay at or above ``floor``.
 
     One factor for every step lands short of the floor wherever the error jumps instead of growing smoothly (an
     attribute on a grid of its own is exact up to twice that grid's step, then not), and the last try that passed
-    can sit a decibel or more above the floor. An attribute that fails once is not tried again.
+    can sit a decibel or more above the floor. Each attribute is coarsened by ``factors[0]``; one that fails is
+    tried again by the next, smaller factor, and left alone once the last fails.
     """
-    candidates = list(order)
+    candidates = [(attribute, 0) for attribute in order]
     best, tries = fit, list(fit.tries)
     while candidates and len(tries) - len(fit.tries) < max_tries:
-        attribute = candidates[0]
-        steps = _times(best.steps, attribute, factor)
+        attribute, which = candidates.pop(0)
+        steps = _times(best.steps, attribute, factors[which])
         decoded = LevelState(quantized(state.stored, steps), state.normals, state.offsets, state.bits)
         value, _ = evaluate(decoded.expanded(), test, background)
-        tries.append({"coarsen": attribute, "psnr": value})
+        tries.append({"coarsen": attribute, "by": factors[which], "psnr": value})
         if value >= floor:
             best = QuantFit(steps, best.factor, value, tries)
-            candidates.append(candidates.pop(0))  # the others get their turn before it comes round again
-        else:
-            candidates.pop(0)
+            candidates.append((attribute, which))  # the others get their turn before it comes round again
+        elif which + 1 < len(factors):
+            candidates.append((attribute, which + 1))
     best.tries = tries
     return best
 
