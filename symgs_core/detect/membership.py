@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit
 from scipy.spatial import cKDTree
 from torch import Tensor
 
@@ -46,6 +46,8 @@ _TRAITS = 7  # scaled attributes per Gaussian: RGB, opacity, three sorted log-sc
 _MORTON_BITS = 21  # per axis: three fit in 64 bits
 _MORTON_SPAN = 2.0  # the order covers coordinates within this many frame radii; beyond, it clamps
 _LN2 = math.log(2.0)
+_CLOSE = 0.9  # geometric score of a match close enough to judge whether attributes agree here ...
+_ALIKE = 0.5  # ... and the agreement above which they do
 
 
 def _query(tree: cKDTree, points: np.ndarray, k: int, **kwargs: float) -> tuple[np.ndarray, np.ndarray]:
@@ -193,16 +195,16 @@ class Matcher:
         # Two tolerances out a match scores 1/16: nothing farther is worth finding.
         tolerance = widen * self.tolerance
         err, hit = self._other_side(reflected, idx, side, 2.0 * tolerance * float(self.spacing.max()), k)
-        found = np.isfinite(err)
-        hit = np.where(found, hit, idx[:, None])
-        tau = (tolerance * self.spacing[idx])[:, None]
-        geo = np.where(found, np.exp(-_LN2 * (np.where(found, err, 0.0) / tau) ** 2), 0.0)
-        agree = self._agreement(np.repeat(idx, hit.shape[1]), hit.ravel(), n).reshape(hit.shape)
-        w = self._attribute_trust(geo, agree) if weight is None else weight
-        scores = geo * (1.0 - w + w * agree)
-        best = scores.argmax(axis=1)
-        rows = np.arange(len(idx))
-        return scores[rows, best], hit[rows, best], w, geo[rows, best]
+        geo, agree = np.empty(err.shape), np.empty(err.shape)
+        close, alike = _candidate_kernel(
+            err, hit, idx, tolerance * self.spacing[idx], self.traits, self.round, n, geo, agree
+        )
+        if weight is None:
+            weight = self.attribute_weight * alike / close if close else 0.0
+        score, best_geo = np.empty(len(idx)), np.empty(len(idx))
+        best_hit = np.empty(len(idx), dtype=np.int64)
+        _best_kernel(geo, agree, hit, weight, score, best_hit, best_geo)
+        return score, best_hit, weight, best_geo
 
     def refine(self, normal: Tensor, offset: float, iters: int) -> tuple[Tensor, float]:
         """Iterated closest points on (a sample of) the Gaussians that match for the current plane: pair each,
@@ -273,13 +275,13 @@ class Matcher:
 
     def _attribute_trust(self, geo: np.ndarray, agree: np.ndarray) -> float:
         """Weight of attribute agreement in the score: ``attribute_weight`` times the share of the geometrically
-        close matches whose attributes agree. Exact twins agree, so attributes then reject clutter that happens to land
-        near a surface; the independently reconstructed halves of a real capture mostly do not (colours, sizes and
-        orientations differ), and geometry alone decides."""
-        close = geo >= 0.9
+        close matches (geo >= _CLOSE) whose attributes agree (agree > _ALIKE). Exact twins agree, so attributes then
+        reject clutter that happens to land near a surface; the independently reconstructed halves of a real capture
+        mostly do not (colours, sizes and orientations differ), and geometry alone decides."""
+        close = geo >= _CLOSE
         if not close.any():
             return 0.0
-        return self.attribute_weight * float((agree[close] > 0.5).mean())
+        return self.attribute_weight * float((agree[close] > _ALIKE).mean())
 
     def _agreement(self, i: np.ndarray, j: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Soft agreement [M] in (0, 1] of Gaussians i [M] and j [M] as mirror images across a plane with unit normal
@@ -291,52 +293,101 @@ class Matcher:
 
 def _compile(fn):  # noqa: ANN001, ANN202 - a numba kernel
     # Compiled on first use and cached between processes; without a writable cache location, compiled in memory.
+    # One thread: these passes are short next to the KD-tree queries, and on a shared machine waiting for a second
+    # thread costs more than it saves.
     try:
-        return njit(parallel=True, cache=True, nogil=True)(fn)
+        return njit(cache=True, nogil=True)(fn)
     except RuntimeError:
-        return njit(parallel=True, nogil=True)(fn)
+        return njit(nogil=True)(fn)
+
+
+@_compile
+def _agree(traits, round_, a, b, n):  # noqa: ANN001, ANN202
+    """``Matcher._agreement`` of one pair of Gaussians a, b (positions)."""
+    e = 0.0
+    for c in range(_TRAITS):
+        t = float(traits[a, c]) - float(traits[b, c])
+        e += t * t
+    if not (round_[a] or round_[b]):  # round Gaussians have no axis to disagree
+        dot, na, nb = 0.0, 0.0, 0.0
+        for c in range(3):
+            ua, ub = float(traits[a, _TRAITS + c]), float(traits[b, _TRAITS + c])
+            dot += ua * ub
+            na += ua * n[c]
+            nb += ub * n[c]
+        du = (1.0 - abs(dot - 2.0 * na * nb)) / _AXIS_SCALE  # (H u_a) . u_b, H = I - 2 n n^T
+        e += du * du
+    return math.exp(-0.5 * e)
 
 
 @_compile
 def _agreement_kernel(traits, round_, i, j, n, out):  # noqa: ANN001, ANN202
     """``Matcher._agreement`` into out [M] (float32): one fused pass instead of a dozen array-wide ones."""
-    for r in prange(i.shape[0]):
-        a, b = i[r], j[r]
-        e = 0.0
-        for c in range(_TRAITS):
-            t = float(traits[a, c]) - float(traits[b, c])
-            e += t * t
-        if not (round_[a] or round_[b]):  # round Gaussians have no axis to disagree
-            dot, na, nb = 0.0, 0.0, 0.0
-            for c in range(3):
-                ua, ub = float(traits[a, _TRAITS + c]), float(traits[b, _TRAITS + c])
-                dot += ua * ub
-                na += ua * n[c]
-                nb += ub * n[c]
-            du = (1.0 - abs(dot - 2.0 * na * nb)) / _AXIS_SCALE  # (H u_a) . u_b, H = I - 2 n n^T
-            e += du * du
-        out[r] = math.exp(-0.5 * e)
+    for r in range(i.shape[0]):
+        out[r] = _agree(traits, round_, i[r], j[r], n)
+
+
+@_compile
+def _candidate_kernel(err, hit, idx, tau, traits, round_, n, geo, agree):  # noqa: ANN001, ANN202
+    """Scores of the candidates (row r: Gaussian idx[r], column: the k nearest across the plane, err [M, k] inf
+    where none): the geometric score into geo [M, k], 1/2 at tolerance tau [M], and the attribute agreement into
+    agree [M, k]. A missing candidate scores 0 and becomes the Gaussian itself in hit [M, k] (in place). Returns how
+    many candidates are close (geo >= _CLOSE), and how many of those agree (agree > _ALIKE)."""
+    close, alike = 0, 0
+    for r in range(err.shape[0]):
+        for c in range(err.shape[1]):
+            if math.isinf(err[r, c]):
+                hit[r, c] = idx[r]
+                geo[r, c], agree[r, c] = 0.0, 0.0  # no agreement: it would weigh nothing
+                continue
+            t = err[r, c] / tau[r]
+            g = math.exp(-_LN2 * t * t)
+            a = _agree(traits, round_, idx[r], hit[r, c], n)
+            geo[r, c], agree[r, c] = g, a
+            if g >= _CLOSE:
+                close += 1
+                if a > _ALIKE:
+                    alike += 1
+    return close, alike
+
+
+@_compile
+def _best_kernel(geo, agree, hit, weight, score, best_hit, best_geo):  # noqa: ANN001, ANN202
+    """Per row of the candidates (geo, agree, hit [M, k]) the best score geo (1 - w + w agree) into score [M], and
+    that candidate's hit and geo into best_hit [M] and best_geo [M]; the first of equal ones."""
+    for r in range(geo.shape[0]):
+        best = 0
+        top = geo[r, 0] * (1.0 - weight + weight * agree[r, 0])
+        for c in range(1, geo.shape[1]):
+            s = geo[r, c] * (1.0 - weight + weight * agree[r, c])
+            if s > top:
+                best, top = c, s
+        score[r], best_hit[r], best_geo[r] = top, hit[r, best], geo[r, best]
 
 
 def _morton_order(p: np.ndarray) -> np.ndarray:
     """Indices [N] that sort points p [N, 3] (normalised frame) along a Morton (Z-order) curve: nearby points end
     up mostly nearby in the order."""
-    cells = 1 << _MORTON_BITS
-    q = np.clip((p + _MORTON_SPAN) * (cells / (2 * _MORTON_SPAN)), 0, cells - 1).astype(np.uint64)
-    code = np.zeros(len(p), dtype=np.uint64)
-    for axis in range(3):
-        code |= _spread_bits(q[:, axis]) << np.uint64(axis)
+    code = np.empty(len(p), dtype=np.int64)
+    _morton_kernel(np.ascontiguousarray(p, dtype=np.float64), code)
     return np.argsort(code)
 
 
-def _spread_bits(v: np.ndarray) -> np.ndarray:
-    """Each of the low 21 bits of v [N] (uint64) moved to bit 3 i: two zero bits after every bit."""
-    for shift, mask in (
-        (32, 0x1F00000000FFFF),
-        (16, 0x1F0000FF0000FF),
-        (8, 0x100F00F00F00F00F),
-        (4, 0x10C30C30C30C30C3),
-        (2, 0x1249249249249249),
-    ):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
+@_compile
+def _morton_kernel(p, code):  # noqa: ANN001, ANN202
+    """Morton codes [N] (int64, 63 bits) of points p [N, 3]: each coordinate cut into 2^_MORTON_BITS cells over
+    +-_MORTON_SPAN, the cells' bits interleaved (x lowest)."""
+    cells = 1 << _MORTON_BITS
+    scale = cells / (2.0 * _MORTON_SPAN)
+    for r in range(p.shape[0]):
+        c = 0
+        for axis in range(3):
+            v = min(max(int((p[r, axis] + _MORTON_SPAN) * scale), 0), cells - 1)
+            # Spread the 21 bits of v to every third bit (magic masks of the standard bit-interleaving trick).
+            v = (v | (v << 32)) & 0x1F00000000FFFF
+            v = (v | (v << 16)) & 0x1F0000FF0000FF
+            v = (v | (v << 8)) & 0x100F00F00F00F00F
+            v = (v | (v << 4)) & 0x10C30C30C30C30C3
+            v = (v | (v << 2)) & 0x1249249249249249
+            c |= v << axis
+        code[r] = c
