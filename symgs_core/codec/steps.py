@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from .masks import MASKS
+from .palette import ShPaletteCodec
 from .quantize import OpacityCodec, PositionCodec, RotationCodec, ScalarGridCodec, ShDcCodec, ShRestCodec
-from .registry import register_archive_codec
+from .registry import register_archive_codec, register_section_codec
 from .section import SectionCodec
 
 C0 = 0.28209479177387814
@@ -22,7 +23,11 @@ C0 = 0.28209479177387814
 
 @dataclass(frozen=True)
 class QuantSteps:
-    """Grid steps of each attribute at scale 1; ``position`` is a fraction of the bounding box's longest side."""
+    """Grid steps of each attribute at scale 1; ``position`` is a fraction of the bounding box's longest side.
+
+    ``sh_palette``: 0 stores the higher SH bands per coefficient (``ShRestCodec``), else as a palette of at most this
+    many vectors and an index per Gaussian (``ShPaletteCodec``), the palette on the ``sh`` steps.
+    """
 
     position: float = 2.0**-16
     rotation: float = 6.0 / 512.0
@@ -30,9 +35,10 @@ class QuantSteps:
     opacity: float = 1.2 / 128.0
     dc: float = 1.0 / (128.0 * C0)
     sh: tuple[float, float, float] = (1.0 / 32.0, 1.0 / 32.0, 1.0 / 32.0)
+    sh_palette: int = 0
 
     def scaled(self, factor: float) -> QuantSteps:
-        """Every step times ``factor`` (> 0); opacity stays within the unit interval."""
+        """Every step times ``factor`` (> 0); opacity stays within the unit interval; the palette size stays."""
         if not factor > 0:
             raise ValueError(f"step factor must be positive, got {factor}")
         return replace(
@@ -53,14 +59,14 @@ class QuantSteps:
             "scales": ScalarGridCodec(self.scale),
             "opacities": OpacityCodec(self.opacity),
             "sh_dc": ShDcCodec(self.dc),
-            "sh_rest": ShRestCodec(self.sh),
+            "sh_rest": ShPaletteCodec(self.sh_palette, self.sh) if self.sh_palette > 0 else ShRestCodec(self.sh),
             "bits": MASKS,
         }
 
     def as_dict(self) -> dict:
         return {
             "position": self.position, "rotation": self.rotation, "scale": self.scale, "opacity": self.opacity,
-            "dc": self.dc, "sh": list(self.sh),
+            "dc": self.dc, "sh": list(self.sh), "sh_palette": self.sh_palette,
         }  # fmt: skip
 
 
@@ -75,3 +81,4 @@ def register_quantized(name: str, steps: QuantSteps, extent: float) -> str:
 
 # Readers of this build know every quantising codec, whatever step a writer chose.
 register_quantized("quantized", QuantSteps(), 1.0)
+register_section_codec(ShPaletteCodec(1, QuantSteps().sh))

@@ -1,0 +1,272 @@
+"""Vector-quantised higher SH: a palette of SH vectors and one index per Gaussian (as PlayCanvas SOG stores them).
+
+Entry 0 of the palette is the zero vector, so Gaussians whose bands ``prune.reduce_sh`` dropped cost only their index
+and decode to exact zeros. The other entries are the distinct non-zero rows when they fit, else the centroids of a
+k-means (Lloyd) fit. Entries are then quantised per band on the scalar codec's grid (``ShRestCodec``), entries that
+land on one grid point merged, and the palette sorted by decreasing use so the index histogram codes compactly.
+
+    payload   u32 length + indices (an [N, 1] table), then per band u32 length + that band's entry symbols
+              (an [entries - 1, 3 * band width] table, channels decorrelated as for DC where that codes smaller)
+    params    {"size": entries including the zero one, "steps": [band step, ...], "decorrelate": [bool, ...]}
+
+The fit is deterministic (fixed seed) and memoised per array and palette size, since the step search encodes the
+same SH many times with different steps and only the quantisation depends on those.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from .entropy import decode_table, encode_table
+from .errors import ArchiveError
+from .quantize import (
+    _check_raw,
+    _correlate,
+    _finite,
+    _flag,
+    _grid,
+    _keys,
+    _raw_length,
+    _smaller,
+    _step,
+    _symbols,
+    band_slices,
+)
+from .section import EncodedSection, SectionKind
+
+MAX_PALETTE = 1 << 20
+FIT_ROWS = 1 << 16  # k-means fits a random subsample of at most this many rows, then assigns every row once
+ITERATIONS = 8
+SEED = 0
+CHUNK_ELEMENTS = 1 << 21  # distances held at once (rows x entries): a few MB, so a chunk stays in cache
+CACHED_FITS = 4
+SH_DEGREES = {0: 0, 3: 1, 8: 2, 15: 3}  # rows of sh_rest -> SH degree
+
+_fits: OrderedDict[tuple[bytes, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_fits_lock = threading.Lock()
+
+
+def _nearest(rows: torch.Tensor, entries: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """For each row [R, D]: the index of its nearest entry [M, D] and ||c||^2 - 2 x.c for it; chunked matmuls."""
+    labels = np.empty(len(rows), dtype=np.int64)
+    best = np.empty(len(rows), dtype=np.float32)
+    if len(entries) == 0:
+        return labels, best
+    norms = (entries * entries).sum(dim=1)
+    chunk = max(1, CHUNK_ELEMENTS // len(entries))
+    buffer = torch.empty(min(chunk, len(rows)), len(entries))
+    for start in range(0, len(rows), chunk):
+        block = rows[start : start + chunk]
+        distances = torch.addmm(norms, block, entries.T, alpha=-2.0, out=buffer[: len(block)]).numpy()
+        # numpy's argmin is vectorised along a row; torch's is several times slower on CPU.
+        nearest = distances.argmin(axis=1)
+        labels[start : start + len(block)] = nearest
+        best[start : start + len(block)] = distances[np.arange(len(block)), nearest]
+    return labels, best
+
+
+def _means(rows: torch.Tensor, labels: np.ndarray, entries: torch.Tensor, moved: np.ndarray) -> torch.Tensor:
+    """Entries whose rows changed (``moved`` [M] bool) moved to the mean of their rows; an empty one stays."""
+    index = torch.from_numpy(labels)
+    sums = torch.zeros_like(entries).index_add_(0, index, rows)
+    counts = torch.bincount(index, minlength=len(entries)).to(entries.dtype)[:, None]
+    update = torch.from_numpy(moved)[:, None] & (counts > 0)
+    return torch.where(update, sums / counts.clamp(min=1.0), entries)
+
+
+def _reassign(rows: torch.Tensor, entries: torch.Tensor, labels: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """Nearest entries after only the ``moved`` entries changed, ``labels`` being the nearest before: exact.
+
+    A row whose entry stayed keeps it against every other entry that stayed (their distances did not change), so
+    it is compared with the moved entries alone; only rows of moved entries search them all. After the first few
+    Lloyd steps few entries move, and a step costs a fraction of a full search.
+    """
+    labels = labels.copy()
+    search = moved[labels]
+    if search.any():
+        labels[search] = _nearest(rows[torch.from_numpy(search)], entries)[0]
+    stay = np.flatnonzero(~search)
+    candidates = np.flatnonzero(moved)
+    if len(stay) and len(candidates):
+        x = rows[torch.from_numpy(stay)]
+        own = entries[torch.from_numpy(labels[stay])]
+        distance = ((own * own).sum(dim=1) - 2.0 * (x * own).sum(dim=1)).numpy()
+        nearest, best = _nearest(x, entries[torch.from_numpy(candidates)])
+        closer = best < distance
+        labels[stay[closer]] = candidates[nearest[closer]]
+    return labels
+
+
+def _kmeans(rows: np.ndarray, distinct: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lloyd's k-means of ``rows`` [R, D] to ``count`` entries seeded with a random sample of ``distinct`` rows."""
+    rng = np.random.default_rng(SEED)
+    fitted = np.arange(len(rows))
+    if len(rows) > FIT_ROWS:
+        fitted = np.sort(rng.choice(len(rows), FIT_ROWS, replace=False))
+    entries = torch.from_numpy(distinct[np.sort(rng.choice(len(distinct), count, replace=False))].copy())
+    every = torch.from_numpy(rows)
+    sample = every[torch.from_numpy(fitted)]
+    labels = _nearest(sample, entries)[0]
+    moved = np.ones(count, dtype=bool)
+    for _ in range(ITERATIONS):
+        entries = _means(sample, labels, entries, moved)
+        before, labels = labels, _reassign(sample, entries, labels, moved)
+        changed = before != labels
+        moved = np.zeros(count, dtype=bool)
+        moved[before[changed]] = moved[labels[changed]] = True
+        if not moved.any():
+            break
+    entries = _means(sample, labels, entries, moved)
+    every_label = np.empty(len(rows), dtype=np.int64)
+    rest = np.ones(len(rows), dtype=bool)
+    rest[fitted] = False
+    every_label[fitted] = _reassign(sample, entries, labels, moved)
+    every_label[rest] = _nearest(every[torch.from_numpy(rest)], entries)[0]
+    # One last update on every row: the entries become the means of the rows that use them.
+    return _means(every, every_label, entries, np.ones(count, dtype=bool)).numpy(), every_label
+
+
+def fit_palette(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``size`` entries [M, D] for ``rows`` [R, D] float32, and each row's entry [R] (int64).
+
+    The distinct rows, exactly, when at most ``size`` of them; else k-means: deterministic, fitted on a random
+    subsample of ``FIT_ROWS`` rows, ``ITERATIONS`` Lloyd steps, every row then assigned to its nearest centroid.
+    Entries no row uses may remain.
+    """
+    if rows.ndim != 2 or rows.dtype != np.float32:
+        raise ValueError(f"fit_palette takes float32 rows [R, D], got {rows.dtype} of shape {rows.shape}")
+    if size < 1:
+        raise ValueError(f"palette size must be at least 1, got {size}")
+    rows = np.ascontiguousarray(rows + np.float32(0.0))  # -0.0 becomes 0.0: equal rows get equal bytes
+    if rows.shape[1] == 0 or len(rows) == 0:
+        return np.zeros((min(len(rows), 1), rows.shape[1]), np.float32), np.zeros(len(rows), np.int64)
+    keys = rows.view(np.dtype((np.void, rows.shape[1] * 4)))[:, 0]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    distinct = rows[first]
+    if len(distinct) <= size:
+        return distinct, inverse.reshape(-1).astype(np.int64)
+    return _kmeans(rows, distinct, size)
+
+
+def _cached_fit(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``fit_palette``, memoised on the rows' bytes and the size for the last ``CACHED_FITS`` calls."""
+    digest = hashlib.blake2b(np.ascontiguousarray(rows).tobytes(), digest_size=20)
+    digest.update(repr(rows.shape).encode())
+    key = (digest.digest(), size)
+    with _fits_lock:
+        if key in _fits:
+            _fits.move_to_end(key)
+            return _fits[key]
+    entries, labels = fit_palette(rows, size)
+    entries.setflags(write=False)
+    labels.setflags(write=False)
+    with _fits_lock:
+        _fits[key] = (entries, labels)
+        while len(_fits) > CACHED_FITS:
+            _fits.popitem(last=False)
+    return entries, labels
+
+
+def _parts(payload: bytes, count: int, codec: str) -> list[bytes]:
+    """Split a payload of ``count`` length-prefixed parts; ArchiveError unless they fill it exactly."""
+    parts, pos = [], 0
+    for i in range(count):
+        if pos + 4 > len(payload):
+            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
+        length = int.from_bytes(payload[pos : pos + 4], "little")
+        parts.append(payload[pos + 4 : pos + 4 + length])
+        if len(parts[-1]) != length:
+            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
+        pos += 4 + length
+    if pos != len(payload):
+        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
+    return parts
+
+
+@dataclass(frozen=True)
+class ShPaletteCodec:
+    """Higher SH [N, K, 3] as a palette of at most ``size`` vectors (the zero vector first) and an index per row.
+
+    ``steps`` lists the grid step of band 1, 2, 3 for the palette's entries; a scene of lower degree uses the first.
+    """
+
+    size: int
+    steps: tuple[float, ...]
+    name: str = field(default="vq-sh", init=False)
+    kind: SectionKind = field(default="float32", init=False)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        if values.ndim != 3 or values.shape[1] not in SH_DEGREES or values.shape[2] != 3:
+            raise ValueError(f"{self.name} encodes sh_rest [N, K, 3] with K in 0, 3, 8, 15, got {values.shape}")
+        if not 1 <= self.size <= MAX_PALETTE:
+            raise ValueError(f"{self.name}: palette size {self.size} outside 1..{MAX_PALETTE}")
+        n, k, _ = values.shape
+        degree = SH_DEGREES[k]
+        if len(self.steps) < degree:
+            raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
+        x = _finite(values, self.name).reshape(n, 3 * k)
+        index = np.zeros(n, dtype=np.int64)
+        entries = np.zeros((0, 3 * k), dtype=np.float32)
+        if self.size > 1:  # a palette of one entry maps every row to zero
+            nonzero = np.flatnonzero(x.any(axis=1))
+            entries, labels = _cached_fit(values.reshape(n, 3 * k)[nonzero], self.size - 1)
+            index[nonzero] = labels + 1
+        palette = np.concatenate([np.zeros((1, k, 3)), entries.reshape(len(entries), k, 3).astype(np.float64)])
+        bands = [_grid(palette[:, s, :], 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
+        q = np.concatenate([np.zeros((len(palette), 0, 3), dtype=np.int64), *bands], axis=1).reshape(len(palette), -1)
+        # Entries that land on one grid point become one; the zero entry leads, the others by decreasing use.
+        points, merged = np.unique(q, axis=0, return_inverse=True)
+        merged = merged.reshape(-1)
+        index = merged[index]
+        uses = np.bincount(index, minlength=len(points)).astype(np.float64)
+        uses[merged[0]] = np.inf
+        order = np.argsort(-uses, kind="stable")
+        order = order[uses[order] > 0]
+        rank = np.empty(len(points), dtype=np.int64)
+        rank[order] = np.arange(len(order))
+        stored = points[order[1:]].reshape(len(order) - 1, k, 3)
+        parts, mixed = [encode_table(rank[index][:, None])], []
+        for s in band_slices(degree):
+            coded, flag = _smaller(stored[:, s, :], (len(stored), 3 * (s.stop - s.start)))
+            parts.append(coded)
+            mixed.append(flag)
+        payload = b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+        params = {"size": len(order), "steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
+        return EncodedSection(payload, _raw_length(values.shape), params)
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        _keys(params, {"size", "steps", "decorrelate"}, self.name)
+        if len(shape) != 3 or shape[1] not in SH_DEGREES or shape[2] != 3:
+            raise ArchiveError("bad_header", f"{self.name}: cannot hold an array of shape {shape}")
+        degree = SH_DEGREES[shape[1]]
+        size, steps, mixed = params["size"], params["steps"], params["decorrelate"]
+        if type(size) is not int or not 1 <= size <= min(MAX_PALETTE, shape[0] + 1):
+            raise ArchiveError("bad_header", f"{self.name}: palette size {size!r:.40} for {shape[0]} rows")
+        if not isinstance(steps, list) or len(steps) != degree or not isinstance(mixed, list) or len(mixed) != degree:
+            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} and decorrelate for SH degree {degree}")
+        for s, m in zip(steps, mixed):
+            _step({"step": s}, self.name)
+            _flag({"decorrelate": m}, "decorrelate", self.name)
+        _check_raw(self.name, shape, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+        n, k, _ = shape
+        size, degree = params["size"], len(params["steps"])
+        parts = _parts(payload, degree + 1, self.name)
+        index = decode_table(parts[0], n, 1, self.name)[:, 0]
+        if n and (index.min() < 0 or index.max() >= size):
+            raise ArchiveError("corrupt_section", f"{self.name}: a palette index lies outside 0..{size - 1}")
+        palette = np.zeros((size, k, 3), dtype=np.float32)
+        for lvl, (rows, step) in enumerate(zip(band_slices(degree), params["steps"]), start=1):
+            width = rows.stop - rows.start
+            q = _symbols(parts[lvl], size - 1, 3 * width, self.name).reshape(size - 1, width, 3)
+            q = _correlate(q) if params["decorrelate"][lvl - 1] else q
+            palette[1:, rows, :] = q.astype(np.float32) * np.float32(step)
+        return palette[index]

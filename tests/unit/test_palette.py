@@ -1,0 +1,142 @@
+"""The palette codec of the higher SH bands: exact palettes of distinct rows, k-means palettes, zero rows, archives
+written with it, hostile payloads and deterministic output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive, register_quantized
+from symgs_core.codec.entropy import encode_table
+from symgs_core.codec.palette import ShPaletteCodec, _nearest, _reassign, fit_palette
+from symgs_core.codec.quantize import ShRestCodec
+from symgs_core.codec.steps import QuantSteps
+from symgs_core.scene import GaussianScene
+
+STEPS = (0.01, 0.01, 0.01)
+
+
+def _roundtrip(codec: ShPaletteCodec, values: np.ndarray) -> tuple[np.ndarray, dict]:
+    coded = codec.encode(values)
+    codec.check(values.shape, coded.params, coded.raw_length)
+    return codec.decode(coded.payload, values.shape, coded.params, coded.raw_length), coded.params
+
+
+def _clustered(n: int, k: int, centres: int, noise: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    means = rng.normal(size=(centres, k, 3)) * 0.3
+    return (means[rng.integers(0, centres, n)] + rng.normal(size=(n, k, 3)) * noise).astype(np.float32)
+
+
+def test_distinct_rows_that_fit_decode_within_half_a_step_and_zero_rows_exactly() -> None:
+    rng = np.random.default_rng(0)
+    rows = (rng.normal(size=(40, 8, 3)) * 0.3).astype(np.float32)
+    values = rows[rng.integers(0, 40, 600)]
+    values[::7] = 0.0  # Gaussians whose bands were all dropped
+    out, params = _roundtrip(ShPaletteCodec(64, STEPS), values)
+    assert np.abs(out - values).max() <= 0.005 + 1e-6
+    assert (out[::7] == 0).all()
+    assert params["size"] == 1 + len(np.unique(values[values.any(axis=(1, 2))], axis=0))
+
+
+def test_a_kmeans_palette_stays_well_below_the_spread_of_the_data() -> None:
+    values = _clustered(4000, 3, centres=50, noise=0.02, seed=1)
+    out, params = _roundtrip(ShPaletteCodec(256, STEPS), values)
+    assert params["size"] <= 256
+    assert len(np.unique(out.reshape(len(out), -1), axis=0)) <= params["size"]  # every row is a palette entry
+    rms, spread = float(np.sqrt(((out - values) ** 2).mean())), float(values.std())
+    assert rms < 0.1 * spread and rms < 0.03
+
+
+def test_a_palette_codes_clustered_sh_smaller_than_the_scalar_codec() -> None:
+    values = _clustered(4000, 8, centres=100, noise=0.0, seed=2)
+    palette = ShPaletteCodec(128, STEPS).encode(values)
+    scalar = ShRestCodec(STEPS).encode(values)
+    assert len(palette.payload) < 0.5 * len(scalar.payload)
+
+
+def test_incremental_reassignment_finds_the_nearest_entries() -> None:
+    g = torch.Generator().manual_seed(3)
+    rows, entries = torch.randn(3000, 9, generator=g), torch.randn(200, 9, generator=g)
+    labels = _nearest(rows, entries)[0]
+    moved = np.zeros(200, dtype=bool)
+    moved[::9] = True
+    entries[torch.from_numpy(moved)] += 0.5 * torch.randn(int(moved.sum()), 9, generator=g)
+    exact = torch.cdist(rows.double(), entries.double()).argmin(dim=1).numpy()
+    assert np.array_equal(_reassign(rows, entries, labels, moved), exact)
+
+
+def test_fits_and_encodings_are_deterministic() -> None:
+    values = _clustered(3000, 3, centres=400, noise=0.02, seed=4)
+    flat = values.reshape(len(values), -1)
+    first, second = fit_palette(flat, 100), fit_palette(flat, 100)
+    assert np.array_equal(first[0], second[0]) and np.array_equal(first[1], second[1])
+    codec = ShPaletteCodec(101, STEPS)
+    assert codec.encode(values).payload == codec.encode(values.copy()).payload
+
+
+def test_a_palette_of_one_entry_and_a_scene_without_higher_bands() -> None:
+    values = _clustered(50, 3, centres=5, noise=0.0, seed=5)
+    out, params = _roundtrip(ShPaletteCodec(1, STEPS), values)
+    assert params["size"] == 1 and (out == 0).all()
+    empty = np.zeros((50, 0, 3), dtype=np.float32)
+    out, params = _roundtrip(ShPaletteCodec(256, ()), empty)
+    assert out.shape == (50, 0, 3) and params == {"size": 1, "steps": [], "decorrelate": []}
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
+    from symgs_core.budget import extent_of, quantized
+
+    g = torch.Generator().manual_seed(degree)
+    n, k = 600, (degree + 1) ** 2 - 1
+    scene = GaussianScene(
+        means=torch.randn(n, 3, generator=g),
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.randn(n, 3, generator=g) - 4.0,
+        opacities=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 3, generator=g),
+        sh_rest=torch.from_numpy(_clustered(n, k, centres=50, noise=0.01, seed=6)),
+    )
+    steps = QuantSteps(sh_palette=32).scaled(3.0)
+    assert steps.sh_palette == 32 and steps.as_dict()["sh_palette"] == 32
+    name = register_quantized("test-palette", steps, extent_of(scene))
+    contents = ArchiveContents(scene, [], torch.zeros(n, 0, dtype=torch.bool), {})
+    data = encode_archive(contents, codec=name)
+    decoded = decode_archive(data).stored
+    expected = quantized(scene, steps)
+    assert steps.codecs(1.0)["sh_rest"].name == "vq-sh"
+    for key, value in decoded.tensors().items():
+        assert torch.equal(value, expected.tensors()[key]), key
+
+
+def test_hostile_palette_sections_are_archive_errors() -> None:
+    values = _clustered(300, 8, centres=20, noise=0.0, seed=7)
+    codec = ShPaletteCodec(64, STEPS)
+    coded = codec.encode(values)
+    shape, params, raw = values.shape, coded.params, coded.raw_length
+
+    def code(payload: bytes, params: dict = params) -> str:
+        with pytest.raises(ArchiveError) as err:
+            codec.check(shape, params, raw)
+            codec.decode(payload, shape, params, raw)
+        return err.value.code
+
+    assert code(coded.payload[:-3]) == "corrupt_section"
+    assert code(coded.payload + b"\0") == "corrupt_section"
+    indices = encode_table(np.full((300, 1), params["size"], dtype=np.int64))
+    bands = coded.payload[4 + int.from_bytes(coded.payload[:4], "little") :]
+    assert code(len(indices).to_bytes(4, "little") + indices + bands) == "corrupt_section"
+    for bad in (
+        params | {"size": 0},
+        params | {"size": 302},
+        params | {"size": True},
+        params | {"steps": params["steps"][:1]},
+        params | {"steps": [0.01, -0.01]},
+        params | {"decorrelate": [1, 0]},
+        {"size": params["size"], "steps": params["steps"]},
+    ):
+        assert code(coded.payload, bad) == "bad_header", bad
+    with pytest.raises(ArchiveError, match="raw length"):
+        codec.check(shape, params, raw + 4)
