@@ -78,6 +78,8 @@ _ATTRIBUTES = {"position": ("means", 3), "rotation": ("quats", 3), "scale": ("sc
 _PROBE = 2.0  # steps are probed at twice the start, so attributes already on a grid that fine still show an error
 _MAX_SHIFT = 8.0  # how far balancing may move one attribute's step from the start, either way
 _EXACT = 0.01  # an error per component below this share of the mean counts as none
+_EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette starts exact
+_PALETTE = 1 << 14  # the k-means palette size tried first otherwise
 
 
 @dataclass
@@ -95,7 +97,10 @@ class Balanced:
 
 
 def _times(steps: QuantSteps, attribute: str, factor: float) -> QuantSteps:
-    """``steps`` with one attribute's step (a key of ``_ATTRIBUTES``, or ``sh1``..``sh3``) times ``factor``."""
+    """``steps`` with one attribute's step (a key of ``_ATTRIBUTES``, or ``sh1``..``sh3``) times ``factor``; for
+    ``sh_palette`` the palette shrinks as a step growing by ``factor`` would cut the error (size / factor^4)."""
+    if attribute == "sh_palette":
+        return replace(steps, sh_palette=max(2, round(steps.sh_palette / factor**4)))
     if attribute.startswith("sh"):
         band = int(attribute[2:]) - 1
         return replace(steps, sh=tuple(s * factor if i == band else s for i, s in enumerate(steps.sh)))
@@ -245,6 +250,21 @@ def coarsen_one_by_one(
     return best
 
 
+def archive_bytes(stored: GaussianScene, steps: QuantSteps) -> int:
+    """Bytes of the attribute sections of ``stored`` quantised with ``steps`` (the archive less header and masks)."""
+    codecs = steps.codecs(extent_of(stored))
+    tensors = stored.detach().tensors()
+    return sum(len(codecs[k].encode(v.cpu().contiguous().numpy()).payload) for k, v in tensors.items())
+
+
+def palette_start(sh_rest: Tensor) -> int:
+    """The first palette size tried for ``sh_rest`` [N, K, 3]: every distinct row (exact) when they number fewer
+    than ``_EXACT_PALETTE``, as in scenes decoded from SOG; else ``_PALETTE``."""
+    rows = sh_rest.detach().reshape(len(sh_rest), -1)
+    distinct = len(torch.unique(rows[rows.any(dim=1)], dim=0))
+    return distinct + 1 if distinct < _EXACT_PALETTE else _PALETTE
+
+
 def fit_steps(
     state: LevelState,
     test: list[tuple[Camera, Tensor]],
@@ -256,13 +276,23 @@ def fit_steps(
 ) -> QuantFit | None:
     """The quantisation steps for ``floor``: balanced on this scene's renders (``balance_steps``), their common
     factor fitted (``fit_quantization``), then what is left spent one attribute at a time (``coarsen_one_by_one``).
-    None when no quantisation keeps the floor."""
+    Scenes with higher SH bands are fitted twice, with those bands per coefficient and as a palette of vectors
+    (``codec.palette``, shrunk further while it pays), and the smaller archive wins. None when no quantisation keeps
+    the floor."""
     if math.isinf(floor) or psnr_to_mse(floor) <= psnr_to_mse(psnr_before):
         return None
     balanced = balance_steps(state, test, background, start=start, psnr_before=psnr_before)
-    fit = fit_quantization(state, test, background, floor=floor, start=balanced.steps, psnr_before=psnr_before)
-    if fit is None:
+    fits = []
+    variants = [(balanced.steps, balanced.order)]
+    if state.stored.sh_degree:
+        palette = replace(balanced.steps, sh_palette=palette_start(state.stored.sh_rest))
+        variants.append((palette, ["sh_palette"] + balanced.order))
+    for steps, order in variants:
+        fit = fit_quantization(state, test, background, floor=floor, start=steps, psnr_before=psnr_before)
+        if fit is not None:
+            fits.append(coarsen_one_by_one(state, test, background, fit, floor=floor, order=order))
+    if not fits:
         return None
-    fit = coarsen_one_by_one(state, test, background, fit, floor=floor, order=balanced.order)
-    fit.probe_errors = balanced.errors
-    return fit
+    best = min(fits, key=lambda f: archive_bytes(state.stored, f.steps))
+    best.probe_errors = balanced.errors
+    return best

@@ -8,7 +8,16 @@ from dataclasses import replace
 import pytest
 import torch
 
-from symgs_core.budget import _ATTRIBUTES, balance_steps, coarsen_one_by_one, fit_quantization, fit_steps, quantized
+from symgs_core.budget import (
+    _ATTRIBUTES,
+    archive_bytes,
+    balance_steps,
+    coarsen_one_by_one,
+    fit_quantization,
+    fit_steps,
+    palette_start,
+    quantized,
+)
 from symgs_core.codec.steps import QuantSteps, register_quantized
 from symgs_core.optimize import LevelState, evaluate
 from symgs_core.stages import write_archive
@@ -72,3 +81,21 @@ def test_fitting_from_a_skewed_start_beats_one_common_factor(setting) -> None:  
     assert size(fitted.steps) < 0.95 * size(common.steps)
     assert fitted.probe_errors and fit_steps(state, views.test, views.background, floor=math.inf, start=SKEWED,
                                              psnr_before=math.inf) is None  # fmt: skip
+
+
+def test_palette_starts_exact_on_few_distinct_rows() -> None:
+    rows = torch.tensor([[0.1, 0.2, 0.3], [0.0, 0.0, 0.0], [0.1, 0.2, 0.3], [-0.4, 0.0, 0.5]]).repeat(50, 1)
+    assert palette_start(rows.reshape(200, 1, 3)) == 3  # two distinct non-zero rows, plus the zero entry
+
+
+def test_sh_scenes_keep_the_smaller_of_per_coefficient_and_palette_coding(setting) -> None:  # noqa: ANN001
+    state, views = setting
+    fitted = fit_steps(state, views.test, views.background, floor=FLOOR, start=QuantSteps(), psnr_before=math.inf)
+    balanced = balance_steps(state, views.test, views.background, start=QuantSteps(), psnr_before=math.inf)
+    scalar = fit_quantization(state, views.test, views.background, floor=FLOOR, start=balanced.steps,
+                              psnr_before=math.inf)  # fmt: skip
+    scalar = coarsen_one_by_one(state, views.test, views.background, scalar, floor=FLOOR, order=balanced.order)
+    assert fitted.psnr >= FLOOR
+    assert archive_bytes(state.stored, fitted.steps) <= archive_bytes(state.stored, scalar.steps)
+    decoded = quantized(state.stored, fitted.steps)
+    assert evaluate(decoded, views.test, views.background)[0] == pytest.approx(fitted.psnr)
