@@ -60,13 +60,17 @@ def _fixed_width_bytes(state: LevelState, steps: QuantSteps) -> int:
             total_bits += 2 * len(values)
         total_bits += len(values) * per * math.ceil(math.log2(span / step + 2))
     rest = stored.sh_rest.numpy()
+    # A palette stores its entries once and an index per Gaussian; per coefficient, the bands each Gaussian keeps.
+    entries = min(steps.sh_palette, len(stored)) if steps.sh_palette else 0
     for lvl, step in zip(range(1, stored.sh_degree + 1), steps.sh):
         band = rest[:, lvl * lvl - 1 : (lvl + 1) ** 2 - 1, :]
         stored_values = band[np.abs(band).reshape(len(band), -1).max(axis=1) * 2 >= step]
         if stored_values.size:
             span = float(stored_values.max() - stored_values.min())
-            total_bits += stored_values.size * math.ceil(math.log2(span / step + 2))
-    total_bits += 2 * len(stored) if stored.sh_degree else 0
+            count = entries * band[0].size if entries else stored_values.size
+            total_bits += count * math.ceil(math.log2(span / step + 2))
+    if stored.sh_degree:
+        total_bits += len(stored) * (math.ceil(math.log2(entries + 1)) if entries else 2)
     return int(total_bits // 8) + state.bits.shape[1] * ((len(stored) + 7) // 8)
 
 
