@@ -24,7 +24,6 @@ class DetectConfig:
                                             angle of the other's (None: no covariance pruning); loose by default,
                                             real twins differ
     axis_ratio                              an axis is distinct when its scale stands out by this factor
-    chunk                                   pairs processed at once (bounds memory)
     refine_iters                            mean-shift steps refining the plane from the votes near the peak
     icp_iters                               then iterated-closest-point steps refitting it to the matched sides
     match_tolerance                         correspondence: a reflected Gaussian covers one within this many local
@@ -54,7 +53,6 @@ class DetectConfig:
     max_pair_distance: float | None = None
     axis_tolerance: float | None = 0.5
     axis_ratio: float = 1.5
-    chunk: int = 1 << 20
     refine_iters: int = 6
     icp_iters: int = 8
     match_tolerance: float = 2.0
@@ -68,7 +66,7 @@ class DetectConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("colour_bins", "opacity_bins", "scale_bins", "pair_budget", "chunk", "candidates", "min_votes"):
+        for name in ("colour_bins", "opacity_bins", "scale_bins", "pair_budget", "candidates", "min_votes"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")

@@ -12,10 +12,14 @@ then has one contiguous cloud of votes, and the rim cell (cells are centred on t
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
+
+from .compiled import compiled
 
 _SEAM_CELLS = 3  # width of the band past the equator, in cells; above the smoothing and refinement windows
 
@@ -109,24 +113,58 @@ def suppress(grid: Tensor, coord: Tensor, radius: int) -> None:
     grid[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = 0
 
 
-_CHUNK = 1 << 22
 _SPARSE_RATIO = 64  # below one vote per this many cells, the peaks are found on the occupied cells alone
 
 
-def top_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:
+class VoteIndex:
+    """The votes grouped by 2x2x2 block of accumulator cells (a counting sort): the votes of a box of blocks are a
+    few slices, found without a pass over all of them, and the per-block counts are the coarse accumulator."""
+
+    def __init__(self, cells: Tensor, spec: GridSpec) -> None:
+        self.spec = spec
+        self.blocks = tuple((s + 1) // 2 for s in spec.shape)
+        self.cells = cells.to(torch.int32).cpu().contiguous().numpy()  # [V] flat cells
+        _, sv, sg = spec.shape
+        self.starts = np.zeros(math.prod(self.blocks) + 1, dtype=np.int64)  # votes of block b: starts[b]:starts[b+1]
+        self.order = np.empty(len(self.cells), dtype=np.int32)  # vote ids, block after block, in vote order
+        _block_sort(self.cells, sv, sg, self.blocks[1], self.blocks[2], self.starts, self.order)
+
+    def block_counts(self) -> Tensor:
+        """Votes per block [A, B, C] (float32)."""
+        return torch.from_numpy(np.diff(self.starts).astype(np.float32).reshape(self.blocks))
+
+    def in_blocks(self, lo: Sequence[int], hi: Sequence[int]) -> np.ndarray:
+        """Ids [M] (int32) of the votes in blocks lo..hi (coordinates [3], inclusive, clipped to the grid)."""
+        lo = np.clip(np.asarray(lo, dtype=np.int64), 0, None)
+        hi = np.minimum(np.asarray(hi, dtype=np.int64), np.asarray(self.blocks) - 1)
+        return _gather_blocks(self.starts, self.order, lo, hi, self.blocks[1], self.blocks[2])
+
+    def near(self, coord: Tensor, radius: int) -> Tensor:
+        """Ids [M] (int64, ascending) of the votes whose cell is within ``radius`` cells of ``coord`` [3] in every
+        coordinate."""
+        c = [int(v) for v in coord]
+        ids = np.sort(self.in_blocks([(v - radius) // 2 for v in c], [(v + radius) // 2 for v in c]))
+        ids = torch.from_numpy(ids.astype(np.int64))
+        cells = self.spec.unravel(torch.from_numpy(self.cells)[ids].long())
+        return ids[(cells - torch.tensor(c)).abs().amax(dim=1) <= radius]
+
+
+def top_peaks(
+    cells: Tensor, spec: GridSpec, count: int, radius: int, index: VoteIndex | None = None
+) -> list[tuple[Tensor, int]]:
     """Up to ``count`` peaks of the 3x3x3-smoothed vote counts, strongest first: (cell coordinates [3], votes).
 
-    ``cells`` [V] are flat vote cells. After each peak, the cells within ``radius`` of it and of its seam twin (the
-    same plane written as (-n, -offset)) are cleared, so one plane yields one peak. Few votes are counted on their
-    occupied cells alone. Many are accumulated with ``index_add_`` (atomic on a GPU) into a dense grid of 2x2x2
-    blocks, whose smoothed maxima point to where the fine peaks are; each is then found among the votes of its
-    neighbourhood. Either way the peak is the maximum of the fine grid's 3x3x3 sums there.
+    ``cells`` [V] are flat vote cells (``index``, when given, their ``VoteIndex``). After each peak, the cells within
+    ``radius`` of it and of its seam twin (the same plane written as (-n, -offset)) are cleared, so one plane yields
+    one peak. Few votes are counted on their occupied cells alone. Many are counted per 2x2x2 block of cells, whose
+    smoothed maxima point to where the fine peaks are; each is then found among the votes of its neighbourhood.
+    Either way the peak is the maximum of the fine grid's 3x3x3 sums there.
     """
     if cells.numel() == 0 or count <= 0:
         return []
     if cells.numel() * _SPARSE_RATIO < math.prod(spec.shape):
         return _sparse_peaks(cells, spec, count, radius)
-    return _blocked_peaks(cells, spec, count, radius)
+    return _blocked_peaks(cells, index or VoteIndex(cells, spec), count, radius)
 
 
 def _twins(spec: GridSpec, coord: Tensor) -> list[Tensor]:
@@ -136,16 +174,9 @@ def _twins(spec: GridSpec, coord: Tensor) -> list[Tensor]:
     return [coord.cpu(), *spec.unravel(flat).cpu()]
 
 
-def _blocked_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:
-    device = cells.device
-    blocks = torch.cat([spec.unravel(cells[s : s + _CHUNK].long()) // 2 for s in range(0, cells.numel(), _CHUNK)])
-    shape = tuple((s + 1) // 2 for s in spec.shape)
-    grid = torch.zeros(shape, dtype=torch.float32, device=device)
-    flat_blocks = (blocks[:, 0] * shape[1] + blocks[:, 1]) * shape[2] + blocks[:, 2]
-    for s in range(0, flat_blocks.numel(), _CHUNK):
-        chunk = flat_blocks[s : s + _CHUNK]
-        grid.view(-1).index_add_(0, chunk, torch.ones(chunk.numel(), device=device))
-    smoothed = smooth(grid)
+def _blocked_peaks(cells: Tensor, index: VoteIndex, count: int, radius: int) -> list[tuple[Tensor, int]]:
+    spec, shape = index.spec, index.blocks
+    smoothed = smooth(index.block_counts())
     block_radius = (radius + 1) // 2
     peaks: list[tuple[Tensor, int]] = []
     for _ in range(4 * count):  # neighbouring blocks may lead to the same fine peak
@@ -153,14 +184,50 @@ def _blocked_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> li
         if float(smoothed.view(-1)[flat]) <= 0 or len(peaks) == count:
             break
         block = torch.tensor([flat // (shape[1] * shape[2]), (flat // shape[2]) % shape[1], flat % shape[2]])
-        near = (blocks - block.to(device)).abs().amax(dim=1) <= 1
-        coord, votes = _sparse_peaks(cells[near], spec, 1, radius)[0]
+        near = torch.from_numpy(index.in_blocks((block - 1).tolist(), (block + 1).tolist()).astype(np.int64))
+        coord, votes = _sparse_peaks(cells.cpu()[near], spec, 1, radius)[0]
         if all((coord - c).abs().max() > radius for c, _ in peaks):
             peaks.append((coord, votes))
         suppress(smoothed, block, 1)
         for twin in _twins(spec, coord):
             suppress(smoothed, twin // 2, block_radius)
     return sorted(peaks, key=lambda p: -p[1])
+
+
+@compiled
+def _block_sort(cells, sv, sg, bv, bg, starts, order):  # noqa: ANN001, ANN202
+    """Counting sort of the votes (flat cells [V]) by 2x2x2 block: starts [blocks + 1] (zeros in), order [V]."""
+    block = np.empty(cells.shape[0], dtype=np.int32)
+    for r in range(cells.shape[0]):
+        c = cells[r]
+        b = ((c // (sv * sg)) // 2 * bv + (c // sg) % sv // 2) * bg + c % sg // 2
+        block[r] = b
+        starts[b + 1] += 1
+    for b in range(1, starts.shape[0]):
+        starts[b] += starts[b - 1]
+    fill = starts[:-1].copy()
+    for r in range(cells.shape[0]):
+        order[fill[block[r]]] = r
+        fill[block[r]] += 1
+
+
+@compiled
+def _gather_blocks(starts, order, lo, hi, bv, bg):  # noqa: ANN001, ANN202
+    """The ids of the votes of blocks lo..hi [3] (inclusive, inside the grid), block after block."""
+    total = 0
+    for a in range(lo[0], hi[0] + 1):
+        for b in range(lo[1], hi[1] + 1):
+            first = (a * bv + b) * bg
+            total += starts[first + hi[2] + 1] - starts[first + lo[2]]
+    out = np.empty(total, dtype=np.int32)
+    k = 0
+    for a in range(lo[0], hi[0] + 1):
+        for b in range(lo[1], hi[1] + 1):
+            first = (a * bv + b) * bg
+            for r in range(starts[first + lo[2]], starts[first + hi[2] + 1]):
+                out[k] = order[r]
+                k += 1
+    return out
 
 
 def _sparse_peaks(cells: Tensor, spec: GridSpec, count: int, radius: int) -> list[tuple[Tensor, int]]:

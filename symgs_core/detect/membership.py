@@ -18,11 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from numba import njit
 from scipy.spatial import cKDTree
 from torch import Tensor
 
 from .clusters import Attributes
+from .compiled import compiled
 from .pairs import Axes
 from .refine import fit_reflection
 
@@ -83,23 +83,31 @@ class Matcher:
         self.order = _morton_order(p)
         self.rank = np.empty_like(self.order)
         self.rank[self.order] = np.arange(len(self.order))
-        self.p = p.take(self.order, axis=0)
         # Per Gaussian, in one row so that a pair costs two gathers: its attributes scaled so that a unit distance is
-        # one agreement scale (_TRAITS columns), then its distinct axis (3) for the orientation term.
-        traits = torch.cat(
-            [
-                attrs.rgb / _COLOUR_SCALE,
-                attrs.opacity[:, None] / _OPACITY_SCALE,
-                attrs.log_scales / _LOG_SCALE_SCALE,
-                axes.u,
-            ],
-            dim=1,
+        # one agreement scale (_TRAITS columns), then its distinct axis (3) for the orientation term. Gathered into
+        # this order in one compiled pass.
+        n = len(self.order)
+        self.p = np.empty((n, 3))
+        self.traits = np.empty((n, _TRAITS + 3), dtype=np.float32)
+        self.round = np.empty(n, dtype=np.bool_)
+        self.flat = np.empty(n, dtype=np.bool_)
+        cpu = lambda t: t.detach().float().cpu().contiguous().numpy()  # noqa: E731
+        _gather_kernel(
+            self.order,
+            p,
+            cpu(attrs.rgb),
+            cpu(attrs.opacity),
+            cpu(attrs.log_scales),
+            cpu(axes.u),
+            axes.round.bool().cpu().numpy(),
+            axes.flat.cpu().numpy(),
+            np.array([_COLOUR_SCALE, _OPACITY_SCALE, _LOG_SCALE_SCALE], dtype=np.float32),
+            self.p,
+            self.traits,
+            self.round,
+            self.flat,
         )
-        self.traits = traits.float().cpu().numpy().take(self.order, axis=0)
         self.axis = self.traits[:, _TRAITS:]
-        self.round = axes.round.bool().cpu().numpy()[self.order]
-        self.flat = axes.flat.cpu().numpy()[self.order]
-        n = self.p.shape[0]
         # Sliding-midpoint splits on ordered points build several times faster than median splits and query as fast.
         self.tree = cKDTree(self.p, balanced_tree=False, compact_nodes=False)
         rng = np.random.default_rng(0)
@@ -129,7 +137,7 @@ class Matcher:
         """Membership for the plane normal.x = offset (normal [3] unit). The side with more matched Gaussians is
         kept (left); on a tie the side the normal points to."""
         n = normal.detach().to(torch.float64).cpu().numpy()
-        d = self.p @ n - offset
+        d = _distances(self.p, n, offset)
         side = d > 0
         empty = torch.zeros(0, dtype=torch.long, device=self.device)
         if side.all() or not side.any():
@@ -154,7 +162,7 @@ class Matcher:
         for _ in range(planes):
             n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0).numpy()
             offset = float(self.p[self.rank[int(torch.randint(self.p.shape[0], (1,), generator=gen))]] @ n)
-            d = self.p @ n - offset
+            d = _distances(self.p, n, offset)
             matched, _ = self._matched(idx, d, n, d > 0)
             shares.append(float(matched.mean()) if matched.size else 0.0)
         return float(np.mean(shares)) if shares else 0.0
@@ -220,7 +228,7 @@ class Matcher:
         wide = iters // 2
         for stage, steps in enumerate((wide, iters - wide)):
             start = _ICP_WIDEN if stage == 0 else 1.0
-            d = self.p @ n - g
+            d = _distances(self.p, n, g)
             score, _, _, _ = self._scores(self.sample, d, n, d > 0, k=1, weight=None, widen=start)
             idx = self.sample[score >= _OWN_SCORE]
             for it in range(steps):
@@ -236,10 +244,10 @@ class Matcher:
         """One refinement step on Gaussians ``idx`` with tolerances ``tau``; the plane unchanged when fewer than 8
         pairs are found."""
         a = self.p[idx]
-        d = a @ n - g
+        d = _distances(a, n, g)
         err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1, distance_upper_bound=2.0 * float(tau.max()))
         hit = np.minimum(hit, self.p.shape[0] - 1)  # misses: index n, distance inf
-        good = np.nonzero((err < 2.0 * tau) & ((self.p[hit] @ n - g) * d < 0))[0]
+        good = np.nonzero((err < 2.0 * tau) & (_distances(self.p[hit], n, g) * d < 0))[0]
         if good.size < 8:
             return n, g
         # Matches that look alike and lie close weigh most: clutter that happens to land near a surface does not.
@@ -291,17 +299,7 @@ class Matcher:
         return out
 
 
-def _compile(fn):  # noqa: ANN001, ANN202 - a numba kernel
-    # Compiled on first use and cached between processes; without a writable cache location, compiled in memory.
-    # One thread: these passes are short next to the KD-tree queries, and on a shared machine waiting for a second
-    # thread costs more than it saves.
-    try:
-        return njit(cache=True, nogil=True)(fn)
-    except RuntimeError:
-        return njit(nogil=True)(fn)
-
-
-@_compile
+@compiled
 def _agree(traits, round_, a, b, n):  # noqa: ANN001, ANN202
     """``Matcher._agreement`` of one pair of Gaussians a, b (positions)."""
     e = 0.0
@@ -320,14 +318,14 @@ def _agree(traits, round_, a, b, n):  # noqa: ANN001, ANN202
     return math.exp(-0.5 * e)
 
 
-@_compile
+@compiled
 def _agreement_kernel(traits, round_, i, j, n, out):  # noqa: ANN001, ANN202
     """``Matcher._agreement`` into out [M] (float32): one fused pass instead of a dozen array-wide ones."""
     for r in range(i.shape[0]):
         out[r] = _agree(traits, round_, i[r], j[r], n)
 
 
-@_compile
+@compiled
 def _candidate_kernel(err, hit, idx, tau, traits, round_, n, geo, agree):  # noqa: ANN001, ANN202
     """Scores of the candidates (row r: Gaussian idx[r], column: the k nearest across the plane, err [M, k] inf
     where none): the geometric score into geo [M, k], 1/2 at tolerance tau [M], and the attribute agreement into
@@ -351,7 +349,7 @@ def _candidate_kernel(err, hit, idx, tau, traits, round_, n, geo, agree):  # noq
     return close, alike
 
 
-@_compile
+@compiled
 def _best_kernel(geo, agree, hit, weight, score, best_hit, best_geo):  # noqa: ANN001, ANN202
     """Per row of the candidates (geo, agree, hit [M, k]) the best score geo (1 - w + w agree) into score [M], and
     that candidate's hit and geo into best_hit [M] and best_geo [M]; the first of equal ones."""
@@ -365,6 +363,37 @@ def _best_kernel(geo, agree, hit, weight, score, best_hit, best_geo):  # noqa: A
         score[r], best_hit[r], best_geo[r] = top, hit[r, best], geo[r, best]
 
 
+def _distances(p: np.ndarray, n: np.ndarray, offset: float) -> np.ndarray:
+    """Signed distances [N] of points p [N, 3] to the plane n.x = offset, in one compiled pass (numpy's threaded
+    matrix-vector product stalls on a busy machine)."""
+    out = np.empty(p.shape[0])
+    _distance_kernel(np.ascontiguousarray(p, dtype=np.float64), np.asarray(n, dtype=np.float64), float(offset), out)
+    return out
+
+
+@compiled
+def _gather_kernel(order, p, rgb, opacity, log_scales, u, round_, flat, scales, p_out, traits, round_out, flat_out):  # noqa: ANN001, ANN202, PLR0913
+    """Row r of the outputs from Gaussian order[r]: its point, its traits (colour, opacity and log-scales divided by
+    scales [3] in float32, then its axis u), whether it is round and flat."""
+    for r in range(order.shape[0]):
+        s = order[r]
+        for c in range(3):
+            p_out[r, c] = p[s, c]
+            traits[r, c] = rgb[s, c] / scales[0]
+            traits[r, 4 + c] = log_scales[s, c] / scales[2]
+            traits[r, _TRAITS + c] = u[s, c]
+        traits[r, 3] = opacity[s] / scales[1]
+        round_out[r] = round_[s]
+        flat_out[r] = flat[s]
+
+
+@compiled
+def _distance_kernel(p, n, offset, out):  # noqa: ANN001, ANN202
+    """out [N] = p [N, 3] . n [3] - offset."""
+    for r in range(p.shape[0]):
+        out[r] = p[r, 0] * n[0] + p[r, 1] * n[1] + p[r, 2] * n[2] - offset
+
+
 def _morton_order(p: np.ndarray) -> np.ndarray:
     """Indices [N] that sort points p [N, 3] (normalised frame) along a Morton (Z-order) curve: nearby points end
     up mostly nearby in the order."""
@@ -373,7 +402,7 @@ def _morton_order(p: np.ndarray) -> np.ndarray:
     return np.argsort(code)
 
 
-@_compile
+@compiled
 def _morton_kernel(p, code):  # noqa: ANN001, ANN202
     """Morton codes [N] (int64, 63 bits) of points p [N, 3]: each coordinate cut into 2^_MORTON_BITS cells over
     +-_MORTON_SPAN, the cells' bits interleaved (x lowest)."""

@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..scene import GaussianScene
 from .clusters import Clusters
+from .compiled import compiled
 
 
 def _ranges(starts: Tensor, lengths: Tensor) -> Tensor:
@@ -37,16 +39,27 @@ def sample_pairs(starts: Tensor, sizes: Tensor, count: int, gen: torch.Generator
 
     A cluster is drawn with probability proportional to n_k (n_k - 1), then two distinct members uniformly.
     """
-    device = starts.device
-    weight = (sizes * (sizes - 1)).to(torch.float64)
-    cdf = torch.cumsum(weight, 0)
-    u = torch.rand(count, generator=gen, device=device, dtype=torch.float64) * cdf[-1]
-    k = torch.searchsorted(cdf, u, right=True).clamp_max(sizes.numel() - 1)
-    n = sizes[k]
-    ra = (torch.rand(count, generator=gen, device=device) * n).long().clamp_max(n - 1)
-    rb = (torch.rand(count, generator=gen, device=device) * (n - 1)).long().clamp_max(n - 2)
-    rb = rb + (rb >= ra).long()
-    return starts[k] + ra, starts[k] + rb
+    positions = np.arange(int((starts + sizes).max()))
+    a, b = np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64)
+    _sample(positions, starts.cpu().numpy(), sizes.cpu().numpy(), count, gen, a, b)
+    return torch.from_numpy(a).to(starts.device), torch.from_numpy(b).to(starts.device)
+
+
+def _sample(
+    order: np.ndarray,
+    starts: np.ndarray,
+    sizes: np.ndarray,
+    count: int,
+    gen: torch.Generator,
+    i: np.ndarray,
+    j: np.ndarray,
+) -> None:
+    """``sample_pairs`` as indices through order [N], into i [count] and j [count]."""
+    cdf = np.cumsum((sizes * (sizes - 1)).astype(np.float64))
+    u = torch.rand(count, generator=gen, device=gen.device, dtype=torch.float64) * float(cdf[-1])
+    ra = torch.rand(count, generator=gen, device=gen.device)
+    rb = torch.rand(count, generator=gen, device=gen.device)
+    _sample_kernel(order, starts, sizes, cdf, u.cpu().numpy(), ra.cpu().numpy(), rb.cpu().numpy(), i, j)
 
 
 def candidate_pairs(
@@ -55,28 +68,60 @@ def candidate_pairs(
     """Pairs of Gaussian indices [P] from the same cluster, at most about ``budget`` of them.
 
     All pairs when they fit in the budget. Otherwise clusters are enumerated from the smallest up while their pairs
-    fit in ``enumerate_share`` of the budget, and the rest of the budget is sampled from the larger ones.
+    fit in ``enumerate_share`` of the budget, and the rest of the budget is sampled from the larger ones (the pairs
+    of ``enumerate_pairs`` and ``sample_pairs``, written in one compiled pass).
     Returns (i, j, enumerated, sampled).
     """
-    sizes, starts = clusters.sizes, clusters.starts
+    device = clusters.order.device
+    # Per cluster, in numpy: small arrays, where torch's threads cost more than the work.
+    sizes, starts = clusters.sizes.cpu().numpy(), clusters.starts.cpu().numpy()
     multi = sizes >= 2
     sizes, starts = sizes[multi], starts[multi]
-    if sizes.numel() == 0:
-        empty = torch.zeros(0, dtype=torch.long, device=clusters.order.device)
-        return empty, empty, 0, 0
     pairs_per = sizes * (sizes - 1) // 2
-    total = int(pairs_per.sum())
-    if total <= budget:
-        a, b = enumerate_pairs(starts, sizes)
-        return clusters.order[a], clusters.order[b], total, 0
-    by_size = torch.argsort(sizes)
-    fits = torch.cumsum(pairs_per[by_size], 0) <= int(enumerate_share * budget)
-    small, large = by_size[fits], by_size[~fits]
-    a, b = enumerate_pairs(starts[small], sizes[small])
-    enumerated = a.numel()
-    sa, sb = sample_pairs(starts[large], sizes[large], budget - enumerated, gen)
-    order = clusters.order
-    return order[torch.cat([a, sa])], order[torch.cat([b, sb])], enumerated, sa.numel()
+    small = np.arange(sizes.size)
+    large = small[:0]
+    if int(pairs_per.sum()) > budget:
+        by_size = torch.argsort(torch.from_numpy(sizes)).numpy()  # torch's order of equal sizes, as before
+        fits = np.cumsum(pairs_per[by_size]) <= int(enumerate_share * budget)
+        small, large = by_size[fits], by_size[~fits]
+    enumerated = int(pairs_per[small].sum())
+    sampled = budget - enumerated if large.size else 0
+    i = np.empty(enumerated + sampled, dtype=np.int64)
+    j = np.empty(enumerated + sampled, dtype=np.int64)
+    order = clusters.order.cpu().numpy()
+    _enumerate_kernel(order, starts[small], sizes[small], i, j)
+    if sampled:
+        _sample(order, starts[large], sizes[large], sampled, gen, i[enumerated:], j[enumerated:])
+    return torch.from_numpy(i).to(device), torch.from_numpy(j).to(device), enumerated, sampled
+
+
+@compiled
+def _enumerate_kernel(order, starts, sizes, i, j):  # noqa: ANN001, ANN202
+    """``enumerate_pairs`` of the clusters (starts [K], sizes [K]) as Gaussian indices (through order [N]) into the
+    beginning of i and j."""
+    r = 0
+    for k in range(starts.shape[0]):
+        s, n = starts[k], sizes[k]
+        for a in range(s, s + n - 1):
+            for b in range(a + 1, s + n):
+                i[r], j[r] = order[a], order[b]
+                r += 1
+
+
+@compiled
+def _sample_kernel(order, starts, sizes, cdf, u, ra, rb, i, j):  # noqa: ANN001, ANN202
+    """``sample_pairs`` of the clusters (starts [K], sizes [K], cdf [K] of n (n - 1)) from its random numbers
+    (u [S] float64 scaled to the cdf's total, ra [S] and rb [S] float32 in [0, 1)), as indices through order [N]
+    into i [S] and j [S]. The member ranks are float32 products truncated, as torch computed them before."""
+    last = starts.shape[0] - 1
+    for r in range(u.shape[0]):
+        k = min(np.searchsorted(cdf, u[r], side="right"), last)
+        n = sizes[k]
+        a = min(int(ra[r] * np.float32(n)), n - 1)
+        b = min(int(rb[r] * np.float32(n - 1)), n - 2)
+        if b >= a:
+            b += 1
+        i[r], j[r] = order[starts[k] + a], order[starts[k] + b]
 
 
 @dataclass(frozen=True)
@@ -108,17 +153,3 @@ def distinct_axes(scene: GaussianScene, min_ratio: float) -> Axes:
     u = torch.where(k == 0, col0, torch.where(k == 1, col1, col2))
     is_round = torch.maximum(gap_small, gap_large) < math.log(min_ratio)
     return Axes(u, is_round.to(u.dtype), (gap_small >= gap_large) & ~is_round)
-
-
-def axes_agree(
-    diff: Tensor, length2: Tensor, u_i: Tensor, u_j: Tensor, round_i: Tensor, round_j: Tensor, min_cos: float
-) -> Tensor:
-    """Mask [P]: the reflection of axis u_i [P, 3] across the pair's bisecting plane is within the angle of
-    ``min_cos`` of u_j [P, 3] (either sign), or either Gaussian is round (``round_*`` [P], 0/1).
-
-    The plane's normal is diff / |diff| (diff [P, 3], length2 [P] = |diff|^2), so
-    H u_i . u_j = u_i . u_j - 2 (diff . u_i)(diff . u_j) / |diff|^2.
-    """
-    dot = lambda a, b: torch.einsum("ij,ij->i", a, b)  # noqa: E731
-    cos = dot(u_i, u_j) - 2.0 * dot(diff, u_i) * dot(diff, u_j) / length2
-    return cos.abs() + round_i + round_j >= min_cos

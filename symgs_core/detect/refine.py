@@ -6,6 +6,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .compiled import compiled
+
 
 def refine_from_pairs(
     xi: Tensor, xj: Tensor, normal: Tensor, offset: float, angle_scale: float, offset_scale: float, iters: int
@@ -69,25 +71,56 @@ def fit_reflection(
     normal [3] and offset (float64).
     """
     n = np.asarray(normal, dtype=np.float64)
-    m = surface_normal.astype(np.float64)
     e1, e2 = _tangent_basis(n)
-    d = a @ n - offset  # [M]
-    resid = a - 2.0 * d[:, None] * n - b  # [M, 3]
-    # Derivatives of the reflected point a - 2 (n.a - g) n along the tilts e1, e2 and the offset g: 3 x [M, 3].
-    cols = [-2.0 * ((a @ e)[:, None] * n + d[:, None] * e) for e in (e1, e2)] + [np.broadcast_to(2.0 * n, a.shape)]
-    w_plane = np.where(flat, weight, 0.0)
-    w_point = np.where(flat, 0.0, weight)
-    j_plane = np.stack([np.einsum("ij,ij->i", m, c) for c in cols], axis=1)  # [M, 3]: rows m . dA'/dtheta
-    r_plane = np.einsum("ij,ij->i", m, resid)
-    lhs = np.einsum("m,mi,mj->ij", w_plane, j_plane, j_plane)
-    rhs = np.einsum("m,mi,m->i", w_plane, j_plane, r_plane)
-    for p, cp in enumerate(cols):
-        rhs[p] += float(w_point @ np.einsum("ij,ij->i", cp, resid))
-        for q in range(p, 3):
-            lhs[p, q] += float(w_point @ np.einsum("ij,ij->i", cp, cols[q]))
-            lhs[q, p] = lhs[p, q]
+    lhs, rhs = np.zeros((3, 3)), np.zeros(3)
+    _normal_equations(
+        np.ascontiguousarray(a, dtype=np.float64),
+        np.ascontiguousarray(b, dtype=np.float64),
+        np.ascontiguousarray(surface_normal, dtype=np.float64),
+        np.ascontiguousarray(flat, dtype=np.bool_),
+        np.ascontiguousarray(weight, dtype=np.float64),
+        np.stack([e1, e2, n]),
+        float(offset),
+        lhs,
+        rhs,
+    )
     lhs += 1e-9 * max(float(np.trace(lhs)), 1e-30) * np.eye(3)
     step = -np.linalg.solve(lhs, rhs)
     new_n = n + step[0] * e1 + step[1] * e2
     norm = float(np.linalg.norm(new_n))
     return new_n / norm, float((offset + step[2]) / norm)
+
+
+@compiled
+def _normal_equations(a, b, m, flat, weight, basis, offset, lhs, rhs):  # noqa: ANN001, ANN202
+    """The Gauss-Newton system of ``fit_reflection`` accumulated into lhs [3, 3] and rhs [3] in one pass over the
+    pairs (basis [3, 3]: rows e1, e2, n), instead of a dozen array-wide products, whose threaded BLAS stalls on a
+    busy machine."""
+    e1, e2, n = basis[0], basis[1], basis[2]
+    cols = np.empty((3, 3))
+    resid = np.empty(3)
+    jac = np.empty(3)
+    for r in range(a.shape[0]):
+        d = a[r, 0] * n[0] + a[r, 1] * n[1] + a[r, 2] * n[2] - offset
+        t1 = a[r, 0] * e1[0] + a[r, 1] * e1[1] + a[r, 2] * e1[2]
+        t2 = a[r, 0] * e2[0] + a[r, 1] * e2[1] + a[r, 2] * e2[2]
+        for c in range(3):
+            resid[c] = a[r, c] - 2.0 * d * n[c] - b[r, c]
+            # Derivatives of the reflected point a - 2 (n.a - g) n along the tilts e1, e2 and the offset g.
+            cols[0, c] = -2.0 * (t1 * n[c] + d * e1[c])
+            cols[1, c] = -2.0 * (t2 * n[c] + d * e2[c])
+            cols[2, c] = 2.0 * n[c]
+        w = weight[r]
+        if flat[r]:  # point-to-plane: only the distance along the surface normal m counts
+            res = m[r, 0] * resid[0] + m[r, 1] * resid[1] + m[r, 2] * resid[2]
+            for p in range(3):
+                jac[p] = m[r, 0] * cols[p, 0] + m[r, 1] * cols[p, 1] + m[r, 2] * cols[p, 2]
+            for p in range(3):
+                rhs[p] += w * jac[p] * res
+                for q in range(3):
+                    lhs[p, q] += w * jac[p] * jac[q]
+        else:  # point-to-point
+            for p in range(3):
+                rhs[p] += w * (cols[p, 0] * resid[0] + cols[p, 1] * resid[1] + cols[p, 2] * resid[2])
+                for q in range(3):
+                    lhs[p, q] += w * (cols[p, 0] * cols[q, 0] + cols[p, 1] * cols[q, 1] + cols[p, 2] * cols[q, 2])

@@ -15,11 +15,12 @@ from ..scene import GaussianScene
 from .clusters import Clusters, attributes, cluster
 from .config import DetectConfig
 from .frame import normalised_frame
-from .grid import GridSpec, top_peaks
+from .grid import GridSpec, VoteIndex, top_peaks
 from .membership import Matcher, Sides
-from .pairs import Axes, axes_agree, candidate_pairs, distinct_axes
+from .pairs import Axes, candidate_pairs, distinct_axes
 from .refine import refine_from_pairs
 from .result import Mirror
+from .votes import cast_votes
 
 _MAX_OFFSET = 1.0  # planes farther than the robust radius from the centre cut off (almost) nothing
 _REFINE_WINDOW = 5  # cells around the peak whose votes feed the refinement
@@ -56,11 +57,14 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     for t in (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats):
         finite &= torch.isfinite(t).all(dim=1)
     working = torch.nonzero(finite)[:, 0]
+    # Detection reads no higher SH bands: the working sets need not copy them, nor the whole scene be copied at all.
+    light = scene.with_(sh_rest=scene.sh_rest[:, :0])
     mirrors: list[Mirror] = []
     for level in range(config.max_mirrors):
         if working.numel() < config.min_gaussians:
             break
-        found = _detect_level(scene.select(working), config, level, known)
+        subset = light if working.numel() == len(scene) else light.select(working)
+        found = _detect_level(subset, config, level, known)
         if found is None:
             break
         plane, votes, sides, timings = found
@@ -90,9 +94,9 @@ def _detect_level(
     spec = GridSpec(config.angle_res, config.offset_res, _MAX_OFFSET)
     axes = distinct_axes(scene, config.axis_ratio)
     votes_cell, votes_i, votes_j = _vote(x, groups, axes, spec, config, level, clock)
-    peaks = top_peaks(votes_cell, spec, _SPARE_PEAKS * (config.candidates + len(known)), _SUPPRESS_WINDOW)
+    index = VoteIndex(votes_cell, spec)
+    peaks = top_peaks(votes_cell, spec, _SPARE_PEAKS * (config.candidates + len(known)), _SUPPRESS_WINDOW, index)
     clock.lap("peak")
-    vote_coords = spec.unravel(votes_cell.long()).to(torch.int32)  # [V, 3]
     n_points = x.shape[0]
     matcher: Matcher | None = None
     chance: float | None = None
@@ -101,8 +105,8 @@ def _detect_level(
         if len(tried) == config.candidates or peak_votes < config.min_votes:
             break  # peaks come strongest first
         normal, offset = spec.plane(coord)
-        near = (vote_coords - coord.to(vote_coords)).abs().amax(dim=1) <= _REFINE_WINDOW
-        xi, xj = x[votes_i[near].long()], x[votes_j[near].long()]
+        near = index.near(coord, _REFINE_WINDOW)
+        xi, xj = x[votes_i[near].long().to(x.device)], x[votes_j[near].long().to(x.device)]
         normal, offset = refine_from_pairs(
             xi, xj, normal, offset, config.angle_res, config.offset_res, config.refine_iters
         )
@@ -142,45 +146,17 @@ def _vote(
     level: int,
     clock: _Clock,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The votes of the candidate pairs: per vote, its flat cell [V] and its pair (i [V], j [V])."""
+    """The votes of the candidate pairs: per vote, its flat cell [V] and its pair (i [V], j [V]), on the CPU."""
     device = x.device
     gen = torch.Generator(device=device).manual_seed(config.seed + level)
     budget = max(1, min(config.pair_budget, int(config.pairs_per_gaussian * x.shape[0])))
     pi, pj, _, _ = candidate_pairs(groups, budget, config.enumerate_share, gen)
-    prune = config.axis_tolerance is not None
-    min_cos = math.cos(config.axis_tolerance) if prune else 0.0
+    min_cos = None if config.axis_tolerance is None else math.cos(config.axis_tolerance)
     max_d2 = math.inf if config.max_pair_distance is None else config.max_pair_distance**2
     clock.lap("pairs")
-    cells, vi, vj = [], [], []
-    for s in range(0, pi.numel(), config.chunk):
-        a, b = pi[s : s + config.chunk], pj[s : s + config.chunk]
-        xa, xb = x.index_select(0, a), x.index_select(0, b)
-        diff = xa - xb
-        length2 = torch.einsum("ij,ij->i", diff, diff)
-        ok = (length2 > 1e-12) & (length2 <= max_d2)  # coincident Gaussians define no plane
-        if prune:
-            u, r = axes.u, axes.round
-            ok &= axes_agree(
-                diff,
-                length2,
-                u.index_select(0, a),
-                u.index_select(0, b),
-                r.index_select(0, a),
-                r.index_select(0, b),
-                min_cos,
-            )
-        keep = torch.nonzero(ok)[:, 0]
-        a, b = a[keep], b[keep]
-        normal = diff[keep] * torch.rsqrt(length2[keep])[:, None]
-        offset = torch.einsum("ij,ij->i", normal, xa[keep] + xb[keep]) / 2
-        cell, source = spec.cells(normal, offset)
-        cells.append(cell.int())
-        vi.append(a[source].int())
-        vj.append(b[source].int())
+    votes = cast_votes(x, axes, pi, pj, spec, min_cos, max_d2)
     clock.lap("vote")
-    empty = torch.zeros(0, dtype=torch.int32, device=device)
-    cat = lambda parts: torch.cat(parts) if parts else empty  # noqa: E731
-    return cat(cells), cat(vi), cat(vj)
+    return votes
 
 
 def _same_plane(normal: Tensor, offset: float, other: tuple[Tensor, float], config: DetectConfig) -> bool:

@@ -7,8 +7,9 @@ import math
 import torch
 
 from symgs_core.detect.clusters import Clusters, rgb_to_hsv
-from symgs_core.detect.grid import GridSpec, top_peaks
-from symgs_core.detect.pairs import candidate_pairs, enumerate_pairs, sample_pairs
+from symgs_core.detect.grid import GridSpec, VoteIndex, top_peaks
+from symgs_core.detect.pairs import Axes, candidate_pairs, enumerate_pairs, sample_pairs
+from symgs_core.detect.votes import cast_votes
 from symgs_core.mirror import reflect_points
 
 SPEC = GridSpec(cell=0.01, depth=0.01, max_offset=1.0)
@@ -112,3 +113,55 @@ def test_hsv_of_primaries_and_greys() -> None:
     assert torch.allclose(hsv[:, 0], torch.tensor([0.0, 1 / 3, 2 / 3, 0.0, 0.0]))
     assert torch.allclose(hsv[:, 1], torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0]))
     assert torch.allclose(hsv[:, 2], torch.tensor([1.0, 1.0, 1.0, 0.5, 0.0]))
+
+
+def test_candidate_pairs_are_the_enumerated_then_the_sampled_pairs_through_the_order() -> None:
+    sizes = torch.tensor([3, 1, 2, 50, 40])
+    starts = torch.cumsum(sizes, 0) - sizes
+    order = torch.randperm(int(sizes.sum()), generator=torch.Generator().manual_seed(0))
+    clusters = Clusters(order=order, starts=starts, sizes=sizes)
+    i, j, enumerated, sampled = candidate_pairs(clusters, 500, 0.5, torch.Generator().manual_seed(1))
+    # Pairs per cluster, smallest first: 1 (size 2), 3, 780, 1225; a quarter of the budget fits the first two.
+    assert (enumerated, sampled) == (4, 496)
+    small, large = torch.tensor([2, 0]), torch.tensor([4, 3])
+    a, b = enumerate_pairs(starts[small], sizes[small])
+    sa, sb = sample_pairs(starts[large], sizes[large], 496, torch.Generator().manual_seed(1))
+    assert torch.equal(i, order[torch.cat([a, sa])]) and torch.equal(j, order[torch.cat([b, sb])])
+
+
+def test_cast_votes_are_the_cells_of_the_bisecting_planes_of_the_pairs_that_agree() -> None:
+    g = torch.Generator().manual_seed(6)
+    x = torch.rand(400, 3, generator=g) - 0.5
+    x[1] = x[0]  # a coincident pair votes for nothing
+    u = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=1)
+    axes = Axes(u, (torch.rand(400, generator=g) < 0.3).float(), torch.zeros(400, dtype=torch.bool))
+    i, j = torch.randint(400, (5000,), generator=g), torch.randint(400, (5000,), generator=g)
+    i[0], j[0] = 0, 1
+    min_cos = math.cos(0.5)
+    cells, vi, vj = cast_votes(x, axes, i, j, SPEC, min_cos, math.inf)
+    diff = (x[i] - x[j]).double()
+    length2 = (diff * diff).sum(dim=1)
+    ui, uj = u[i].double(), u[j].double()
+    cos = (ui * uj).sum(dim=1) - 2.0 * (diff * ui).sum(dim=1) * (diff * uj).sum(dim=1) / length2
+    keep = (length2 > 1e-12) & (cos.abs() + axes.round[i] + axes.round[j] >= min_cos)
+    assert 1000 < int(keep.sum()) < 4000  # the pruning both keeps and drops
+    normal = diff[keep] / length2[keep].sqrt()[:, None]
+    offset = (normal * (x[i[keep]] + x[j[keep]]).double()).sum(dim=1) / 2
+    expected, source = SPEC.cells(normal, offset)
+    pair = lambda c, a, b: sorted(zip(c.tolist(), a.tolist(), b.tolist(), strict=True))  # noqa: E731
+    assert pair(cells, vi, vj) == pair(expected, i[keep][source], j[keep][source])
+
+
+def test_vote_index_finds_the_votes_near_a_cell_and_counts_blocks() -> None:
+    g = torch.Generator().manual_seed(7)
+    coords = torch.stack([torch.randint(0, s, (20_000,), generator=g) for s in SPEC.shape], dim=1)
+    coords[:5000] = coords[:5000] % 9 + 100  # a dense corner
+    _, sv, sg = SPEC.shape
+    cells = ((coords[:, 0] * sv + coords[:, 1]) * sg + coords[:, 2]).int()
+    index = VoteIndex(cells, SPEC)
+    for centre, radius in ((torch.tensor([104, 103, 105]), 5), (torch.tensor([0, 200, 3]), 4)):
+        brute = torch.nonzero((coords - centre).abs().amax(dim=1) <= radius)[:, 0]
+        assert torch.equal(index.near(centre, radius), brute)
+    blocks = coords // 2
+    assert float(index.block_counts()[tuple(blocks[0])]) == float((blocks == blocks[0]).all(dim=1).sum())
+    assert float(index.block_counts().sum()) == 20_000
