@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..scene import GaussianScene
 from ..sh import C0
+from .compiled import compiled
 
 
 @dataclass(frozen=True)
@@ -38,40 +41,110 @@ def attributes(scene: GaussianScene) -> Attributes:
 
 
 def rgb_to_hsv(rgb: Tensor) -> Tensor:
-    """HSV [N, 3] in [0, 1] of RGB [N, 3] in [0, 1]; hue 0 for greys."""
-    r, g, b = rgb.unbind(-1)
-    v, arg = rgb.max(dim=-1)
-    c = v - rgb.min(dim=-1).values
-    safe = torch.where(c > 0, c, torch.ones_like(c))
-    h = torch.stack([(g - b) / safe % 6.0, (b - r) / safe + 2.0, (r - g) / safe + 4.0], dim=-1)
-    h = torch.where(c > 0, h.gather(-1, arg[..., None])[..., 0] / 6.0, torch.zeros_like(v))
-    s = torch.where(v > 0, c / torch.where(v > 0, v, torch.ones_like(v)), torch.zeros_like(v))
-    return torch.stack([h, s, v], dim=-1)
-
-
-def _bin(values: Tensor, lo: float, hi: float, bins: int) -> Tensor:
-    width = max(hi - lo, 1e-12) / bins
-    return ((values - lo) / width).floor().clamp(0, bins - 1).long()
+    """HSV [N, 3] in [0, 1] of RGB [N, 3] in [0, 1]; hue 0 for greys. On the CPU, in float32."""
+    c = rgb.detach().float().cpu().contiguous().numpy()
+    out = np.empty_like(c)
+    _hsv_kernel(c, out)
+    return torch.from_numpy(out).to(rgb.device)
 
 
 def cluster(attrs: Attributes, colour_bins: int, opacity_bins: int, scale_bins: int) -> Clusters:
     """Bin HSV colour, opacity and each sorted log-scale, and group Gaussians by their joint bin."""
-    hsv = rgb_to_hsv(attrs.rgb)
-    hue = (hsv[:, 0] * colour_bins).floor().long() % colour_bins  # hue wraps around
-    sat = _bin(hsv[:, 1], 0.0, 1.0, colour_bins)
-    val = _bin(hsv[:, 2], 0.0, 1.0, colour_bins)
-    opa = _bin(attrs.opacity, 0.0, 1.0, opacity_bins)
     # Sizes binned over the scene's own range, so that a uniform scaling of the scene bins the same way.
     flat = attrs.log_scales.flatten()
     sample = flat[:: max(1, flat.numel() // 200_000)]
     lo, hi = torch.quantile(sample, torch.tensor([0.01, 0.99], dtype=sample.dtype, device=sample.device)).tolist()
-    sc = _bin(attrs.log_scales, lo, hi, scale_bins)
-    key = torch.zeros_like(hue)
-    for part, bins in ((hue, colour_bins), (sat, colour_bins), (val, colour_bins), (opa, opacity_bins)):
-        key = key * bins + part
-    for axis in range(3):
-        key = key * scale_bins + sc[:, axis]
-    sorted_key, order = torch.sort(key)
-    _, sizes = torch.unique_consecutive(sorted_key, return_counts=True)
-    starts = torch.cumsum(sizes, 0) - sizes
-    return Clusters(order, starts, sizes)
+    # Bin widths as float32, as torch divided float32 values by them before.
+    widths = np.array([1.0 / colour_bins, 1.0 / opacity_bins, max(hi - lo, 1e-12) / scale_bins], dtype=np.float32)
+    cpu = lambda t: t.detach().float().cpu().contiguous().numpy()  # noqa: E731
+    key = np.empty(len(attrs.opacity), dtype=np.int64)
+    bins = np.array([colour_bins, opacity_bins, scale_bins])
+    _key_kernel(cpu(attrs.rgb), cpu(attrs.opacity), cpu(attrs.log_scales), bins, np.float32(lo), widths, key)
+    order, starts, sizes = _group_kernel(key, colour_bins**3 * opacity_bins * scale_bins**3)
+    device = attrs.rgb.device
+    return Clusters(*(torch.from_numpy(t).to(device) for t in (order, starts, sizes)))
+
+
+@compiled
+def _hsv(r, g, b):  # noqa: ANN001, ANN202
+    """HSV of one float32 RGB, operation for operation as torch computed it before (float32 throughout)."""
+    zero = np.float32(0.0)
+    v = max(r, g, b)
+    c = v - min(r, g, b)
+    h = zero
+    if c > zero:
+        if r == v:  # the first of equal maxima, as torch's max picks
+            h = (g - b) / c  # in [-1, 1]: taken modulo 6, as torch did
+            if h < zero:
+                h = h + np.float32(6.0)
+        elif g == v:
+            h = (b - r) / c + np.float32(2.0)
+        else:
+            h = (r - g) / c + np.float32(4.0)
+        h = h / np.float32(6.0)
+    s = c / v if v > zero else zero
+    return h, s, v
+
+
+@compiled
+def _hsv_kernel(rgb, out):  # noqa: ANN001, ANN202
+    for n in range(rgb.shape[0]):
+        out[n, 0], out[n, 1], out[n, 2] = _hsv(rgb[n, 0], rgb[n, 1], rgb[n, 2])
+
+
+@compiled
+def _bin_of(value, lo, width, bins):  # noqa: ANN001, ANN202
+    """floor((value - lo) / width) clamped to 0..bins - 1 (float32 value, lo and width)."""
+    return int(min(max(math.floor((value - lo) / width), 0.0), bins - 1))
+
+
+@compiled
+def _key_kernel(rgb, opacity, log_scales, bins, lo, widths, key):  # noqa: ANN001, ANN202
+    """Joint bin [N] of hue, saturation, value (bins[0] each), opacity (bins[1]) and the three sorted log-scales
+    (bins[2] each, from lo in steps widths[2])."""
+    zero = np.float32(0.0)
+    for n in range(rgb.shape[0]):
+        h, s, v = _hsv(rgb[n, 0], rgb[n, 1], rgb[n, 2])
+        k = int(math.floor(h * np.float32(bins[0]))) % bins[0]  # hue wraps around
+        k = k * bins[0] + _bin_of(s, zero, widths[0], bins[0])
+        k = k * bins[0] + _bin_of(v, zero, widths[0], bins[0])
+        k = k * bins[1] + _bin_of(opacity[n], zero, widths[1], bins[1])
+        for axis in range(3):
+            k = k * bins[2] + _bin_of(log_scales[n, axis], lo, widths[2], bins[2])
+        key[n] = k
+
+
+@compiled
+def _group_kernel(key, span):  # noqa: ANN001, ANN202
+    """Gaussians grouped by their key [N] (in 0..span - 1): order [N] (a stable sort by key: LSD radix sort, 16 bits
+    a pass), starts [K] and sizes [K] of the occupied keys in ascending order."""
+    n = key.shape[0]
+    order = np.arange(n)
+    spare = np.empty(n, dtype=np.int64)
+    shift = 0
+    while (span - 1) >> shift:
+        counts = np.zeros((1 << 16) + 1, dtype=np.int64)
+        for r in range(n):
+            counts[((key[r] >> shift) & 0xFFFF) + 1] += 1
+        for d in range(1, counts.shape[0]):
+            counts[d] += counts[d - 1]
+        for r in range(n):
+            digit = (key[order[r]] >> shift) & 0xFFFF
+            spare[counts[digit]] = order[r]
+            counts[digit] += 1
+        order, spare = spare, order
+        shift += 16
+    groups = 0
+    for r in range(n):
+        if r == 0 or key[order[r]] != key[order[r - 1]]:
+            groups += 1
+    starts = np.empty(groups, dtype=np.int64)
+    g = -1
+    for r in range(n):
+        if r == 0 or key[order[r]] != key[order[r - 1]]:
+            g += 1
+            starts[g] = r
+    sizes = np.empty(groups, dtype=np.int64)
+    for g in range(groups):
+        sizes[g] = (starts[g + 1] if g + 1 < groups else n) - starts[g]
+    return order, starts, sizes

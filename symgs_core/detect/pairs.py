@@ -141,15 +141,33 @@ def distinct_axes(scene: GaussianScene, min_ratio: float) -> Axes:
     pair. A Gaussian none of whose axes stands out by a factor ``min_ratio`` in scale is round: it pairs with any.
     """
     s, idx = scene.scales.sort(dim=1)
-    gap_small = s[:, 1] - s[:, 0]  # log-ratio of the middle to the shortest scale
-    gap_large = s[:, 2] - s[:, 1]
-    axis = torch.where(gap_small >= gap_large, idx[:, 0], idx[:, 2])
-    w, x, y, z = scene.normalized_quats().unbind(-1)
-    # Column k of the rotation matrix is the direction of scale axis k.
-    col0 = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], dim=-1)
-    col1 = torch.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], dim=-1)
-    col2 = torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], dim=-1)
-    k = axis[:, None]
-    u = torch.where(k == 0, col0, torch.where(k == 1, col1, col2))
-    is_round = torch.maximum(gap_small, gap_large) < math.log(min_ratio)
-    return Axes(u, is_round.to(u.dtype), (gap_small >= gap_large) & ~is_round)
+    q = scene.normalized_quats()
+    cpu = lambda t: t.detach().cpu().contiguous().numpy()  # noqa: E731
+    n = len(scene)
+    u = np.empty((n, 3), dtype=np.float32)
+    is_round, flat = np.empty(n, dtype=np.float32), np.empty(n, dtype=np.bool_)
+    _axes_kernel(cpu(s.float()), cpu(idx), cpu(q.float()), np.float32(math.log(min_ratio)), u, is_round, flat)
+    device = scene.device
+    return Axes(*(torch.from_numpy(t).to(device) for t in (u, is_round, flat)))
+
+
+@compiled
+def _axes_kernel(s, idx, q, log_ratio, u, round_, flat):  # noqa: ANN001, ANN202
+    """``distinct_axes`` of sorted log-scales s [N, 3] (their axes idx [N, 3]) and unit quaternions q [N, 4] (wxyz)
+    into u [N, 3], round_ [N] and flat [N]; in float32, operation for operation as torch computed it before."""
+    one, two = np.float32(1.0), np.float32(2.0)
+    for r in range(s.shape[0]):
+        gap_small = s[r, 1] - s[r, 0]  # log-ratio of the middle to the shortest scale
+        gap_large = s[r, 2] - s[r, 1]
+        axis = idx[r, 0] if gap_small >= gap_large else idx[r, 2]
+        w, x, y, z = q[r, 0], q[r, 1], q[r, 2], q[r, 3]
+        # Column ``axis`` of the rotation matrix: the direction of that scale axis.
+        if axis == 0:
+            u[r, 0], u[r, 1], u[r, 2] = one - two * (y * y + z * z), two * (x * y + w * z), two * (x * z - w * y)
+        elif axis == 1:
+            u[r, 0], u[r, 1], u[r, 2] = two * (x * y - w * z), one - two * (x * x + z * z), two * (y * z + w * x)
+        else:
+            u[r, 0], u[r, 1], u[r, 2] = two * (x * z + w * y), two * (y * z - w * x), one - two * (x * x + y * y)
+        is_round = max(gap_small, gap_large) < log_ratio
+        round_[r] = one if is_round else np.float32(0.0)
+        flat[r] = gap_small >= gap_large and not is_round
