@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -33,7 +34,11 @@ def normalised_frame(means: Tensor, quantile: float) -> Frame | None:
     """The frame of ``means`` [N, 3], or None when the points have no extent (fewer than two distinct points)."""
     if means.shape[0] < 2:
         return None
-    centre = means.median(dim=0).values
+    # torch's median (the lower middle value) per axis, by a partial sort of each column.
+    m = means.detach().cpu().numpy()
+    middle = (m.shape[0] - 1) // 2
+    centre = torch.tensor([float(np.partition(m[:, a], middle)[middle]) for a in range(3)], dtype=means.dtype)
+    centre = centre.to(means.device)
     dist = (means - centre).norm(dim=1)
     k = min(max(int(round(quantile * dist.numel())), 1), dist.numel())
     radius = float(dist.kthvalue(k).values)

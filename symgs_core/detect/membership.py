@@ -148,7 +148,10 @@ class Matcher:
         keep_side = side if (cover & side).sum() >= (cover & ~side).sum() else ~side
 
         def t(mask: np.ndarray) -> Tensor:
-            return torch.from_numpy(np.sort(self.order[mask])).to(self.device)
+            # Working-set indices in ascending order: marked in a mask of the working set, not sorted.
+            marked = np.zeros(len(mask), dtype=np.bool_)
+            marked[self.order[mask]] = True
+            return torch.from_numpy(np.nonzero(marked)[0]).to(self.device)
 
         return Sides(t(cover & keep_side), t(cover & ~keep_side))
 
@@ -199,7 +202,8 @@ class Matcher:
         distances ``d`` [N] of all Gaussians to it, unit normal ``n`` [3], ``side`` [N] = d > 0), that
         Gaussian [M] (its own index where none), the attribute weight used (computed here when None), and the
         geometric score [M] of the best match. ``widen`` scales the tolerance."""
-        reflected = self.p[idx] - 2.0 * d[idx, None] * n
+        reflected = np.empty((len(idx), 3))
+        _reflect_kernel(self.p, idx, d, n, reflected)
         # Two tolerances out a match scores 1/16: nothing farther is worth finding.
         tolerance = widen * self.tolerance
         err, hit = self._other_side(reflected, idx, side, 2.0 * tolerance * float(self.spacing.max()), k)
@@ -385,6 +389,16 @@ def _gather_kernel(order, p, rgb, opacity, log_scales, u, round_, flat, scales, 
         traits[r, 3] = opacity[s] / scales[1]
         round_out[r] = round_[s]
         flat_out[r] = flat[s]
+
+
+@compiled
+def _reflect_kernel(p, idx, d, n, out):  # noqa: ANN001, ANN202
+    """out [M, 3] = p[idx] - 2 d[idx] n: the reflections of points idx [M] across the plane of normal n [3] (d [N]
+    their signed distances to it)."""
+    for r in range(idx.shape[0]):
+        i = idx[r]
+        for c in range(3):
+            out[r, c] = p[i, c] - 2.0 * d[i] * n[c]
 
 
 @compiled
