@@ -60,9 +60,12 @@ def cluster(attrs: Attributes, colour_bins: int, opacity_bins: int, scale_bins: 
     key = np.empty(len(attrs.opacity), dtype=np.int64)
     bins = np.array([colour_bins, opacity_bins, scale_bins])
     _key_kernel(cpu(attrs.rgb), cpu(attrs.opacity), cpu(attrs.log_scales), bins, np.float32(lo), widths, key)
-    order, starts, sizes = _group_kernel(key, colour_bins**3 * opacity_bins * scale_bins**3)
+    # torch's sort, whose order of equal keys (not always stable) decides the pairs drawn from each cluster.
+    sorted_key, order = torch.sort(torch.from_numpy(key))
+    _, sizes = torch.unique_consecutive(sorted_key, return_counts=True)
+    starts = torch.cumsum(sizes, 0) - sizes
     device = attrs.rgb.device
-    return Clusters(*(torch.from_numpy(t).to(device) for t in (order, starts, sizes)))
+    return Clusters(order.to(device), starts.to(device), sizes.to(device))
 
 
 @compiled
@@ -112,39 +115,3 @@ def _key_kernel(rgb, opacity, log_scales, bins, lo, widths, key):  # noqa: ANN00
         for axis in range(3):
             k = k * bins[2] + _bin_of(log_scales[n, axis], lo, widths[2], bins[2])
         key[n] = k
-
-
-@compiled
-def _group_kernel(key, span):  # noqa: ANN001, ANN202
-    """Gaussians grouped by their key [N] (in 0..span - 1): order [N] (a stable sort by key: LSD radix sort, 16 bits
-    a pass), starts [K] and sizes [K] of the occupied keys in ascending order."""
-    n = key.shape[0]
-    order = np.arange(n)
-    spare = np.empty(n, dtype=np.int64)
-    shift = 0
-    while (span - 1) >> shift:
-        counts = np.zeros((1 << 16) + 1, dtype=np.int64)
-        for r in range(n):
-            counts[((key[r] >> shift) & 0xFFFF) + 1] += 1
-        for d in range(1, counts.shape[0]):
-            counts[d] += counts[d - 1]
-        for r in range(n):
-            digit = (key[order[r]] >> shift) & 0xFFFF
-            spare[counts[digit]] = order[r]
-            counts[digit] += 1
-        order, spare = spare, order
-        shift += 16
-    groups = 0
-    for r in range(n):
-        if r == 0 or key[order[r]] != key[order[r - 1]]:
-            groups += 1
-    starts = np.empty(groups, dtype=np.int64)
-    g = -1
-    for r in range(n):
-        if r == 0 or key[order[r]] != key[order[r - 1]]:
-            g += 1
-            starts[g] = r
-    sizes = np.empty(groups, dtype=np.int64)
-    for g in range(groups):
-        sizes[g] = (starts[g + 1] if g + 1 < groups else n) - starts[g]
-    return order, starts, sizes

@@ -69,13 +69,14 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
             break
         plane, votes, sides, timings = found
         is_out = torch.ones(working.numel(), dtype=torch.bool, device=working.device)
-        is_out[sides.left] = False
         is_out[sides.right] = False
+        kept = working[is_out]  # left and out, in ascending order: the next working set
+        is_out[sides.left] = False
         coverage = (sides.left.numel() + sides.right.numel()) / working.numel()
         left, right, out = working[sides.left], working[sides.right], working[is_out]
         mirrors.append(Mirror(plane, votes, left, right, out, coverage, level, timings))
         known.append(plane)
-        working = torch.sort(torch.cat([left, out])).values
+        working = kept
     return mirrors
 
 
