@@ -76,7 +76,7 @@ def _hsv(r, g, b):  # noqa: ANN001, ANN202
     c = v - min(r, g, b)
     h = zero
     if c > zero:
-        if r == v:  # the first of equal maxima, as torch's max picks
+        if r == v:  # equal maxima give the same hue whichever formula serves
             h = (g - b) / c  # in [-1, 1]: taken modulo 6, as torch did
             if h < zero:
                 h = h + np.float32(6.0)
@@ -91,6 +91,7 @@ def _hsv(r, g, b):  # noqa: ANN001, ANN202
 
 @compiled
 def _hsv_kernel(rgb, out):  # noqa: ANN001, ANN202
+    """HSV [N, 3] of RGB [N, 3] into out."""
     for n in range(rgb.shape[0]):
         out[n, 0], out[n, 1], out[n, 2] = _hsv(rgb[n, 0], rgb[n, 1], rgb[n, 2])
 

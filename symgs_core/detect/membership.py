@@ -7,8 +7,8 @@ score, and a Gaussian is matched only where the mean score of its voxel on its s
 forms regions, not specks. The covered Gaussians of one side are dropped (*right*), the Gaussians of the other side
 that cover them are kept and reflected (*left*); everything else is *out*.
 
-The matching runs on the CPU (numpy, scipy's KD-tree, one numba kernel) whatever the device of the scene; results go
-back to that device.
+The matching runs on the CPU (numpy, scipy's KD-tree, compiled numba kernels) whatever the device of the scene;
+results go back to that device.
 """
 
 from __future__ import annotations

@@ -49,7 +49,8 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     smaller than ``min_gaussians``, or when no candidate peak reaches ``min_coverage``. A plane found at one level,
     or listed in ``exclude`` (mirrors of earlier levels, when the caller runs one level at a time), is not reported
     again: the parts of the scene it failed to match would otherwise make it come back. Non-finite Gaussians are
-    never members. Runs on the scene's device (the KD-tree matching on the CPU).
+    never members. Indices come back on the scene's device; the passes over Gaussians and pairs (cluster keys, pair
+    sampling, voting, KD-tree matching) run on the CPU, compiled.
     """
     config = config or DetectConfig()
     known = list(exclude)
