@@ -7,11 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import prange
 from torch import Tensor
 
 from ..scene import GaussianScene
 from ..sh import C0
-from .compiled import compiled
+from .compiled import compiled, compiled_parallel
 
 
 @dataclass(frozen=True)
@@ -102,12 +103,12 @@ def _bin_of(value, lo, width, bins):  # noqa: ANN001, ANN202
     return int(min(max(math.floor((value - lo) / width), 0.0), bins - 1))
 
 
-@compiled
+@compiled_parallel
 def _key_kernel(rgb, opacity, log_scales, bins, lo, widths, key):  # noqa: ANN001, ANN202
     """Joint bin [N] of hue, saturation, value (bins[0] each), opacity (bins[1]) and the three sorted log-scales
     (bins[2] each, from lo in steps widths[2])."""
     zero = np.float32(0.0)
-    for n in range(rgb.shape[0]):
+    for n in prange(rgb.shape[0]):
         h, s, v = _hsv(rgb[n, 0], rgb[n, 1], rgb[n, 2])
         k = int(math.floor(h * np.float32(bins[0]))) % bins[0]  # hue wraps around
         k = k * bins[0] + _bin_of(s, zero, widths[0], bins[0])

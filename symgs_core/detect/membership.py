@@ -18,11 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import prange
 from scipy.spatial import cKDTree
 from torch import Tensor
 
 from .clusters import Attributes
-from .compiled import compiled
+from .compiled import compiled, compiled_parallel
 from .pairs import Axes
 from .refine import fit_reflection
 
@@ -41,7 +42,7 @@ _DEEP = 16  # nearest Gaussians searched for one across the plane, for reflectio
 _ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
 _ICP_SETTLED = 0.003  # ... and a stage ends once a step moves the plane less than this many typical spacings
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
-_PARALLEL_QUERIES = 50_000
+_PARALLEL_QUERIES = 10_000
 _TRAITS = 7  # scaled attributes per Gaussian: RGB, opacity, three sorted log-scales
 _MORTON_BITS = 21  # per axis: three fit in 64 bits
 _MORTON_SPAN = 2.0  # the order covers coordinates within this many frame radii; beyond, it clamps
@@ -329,14 +330,14 @@ def _agreement_kernel(traits, round_, i, j, n, out):  # noqa: ANN001, ANN202
         out[r] = _agree(traits, round_, i[r], j[r], n)
 
 
-@compiled
+@compiled_parallel
 def _candidate_kernel(err, hit, idx, tau, traits, round_, n, geo, agree):  # noqa: ANN001, ANN202
     """Scores of the candidates (row r: Gaussian idx[r], column: the k nearest across the plane, err [M, k] inf
     where none): the geometric score into geo [M, k], 1/2 at tolerance tau [M], and the attribute agreement into
     agree [M, k]. A missing candidate scores 0 and becomes the Gaussian itself in hit [M, k] (in place). Returns how
     many candidates are close (geo >= _CLOSE), and how many of those agree (agree > _ALIKE)."""
     close, alike = 0, 0
-    for r in range(err.shape[0]):
+    for r in prange(err.shape[0]):
         for c in range(err.shape[1]):
             if math.isinf(err[r, c]):
                 hit[r, c] = idx[r]
@@ -353,11 +354,11 @@ def _candidate_kernel(err, hit, idx, tau, traits, round_, n, geo, agree):  # noq
     return close, alike
 
 
-@compiled
+@compiled_parallel
 def _best_kernel(geo, agree, hit, weight, score, best_hit, best_geo):  # noqa: ANN001, ANN202
     """Per row of the candidates (geo, agree, hit [M, k]) the best score geo (1 - w + w agree) into score [M], and
     that candidate's hit and geo into best_hit [M] and best_geo [M]; the first of equal ones."""
-    for r in range(geo.shape[0]):
+    for r in prange(geo.shape[0]):
         best = 0
         top = geo[r, 0] * (1.0 - weight + weight * agree[r, 0])
         for c in range(1, geo.shape[1]):
@@ -375,11 +376,11 @@ def _distances(p: np.ndarray, n: np.ndarray, offset: float) -> np.ndarray:
     return out
 
 
-@compiled
+@compiled_parallel
 def _gather_kernel(order, p, rgb, opacity, log_scales, u, round_, flat, scales, p_out, traits, round_out, flat_out):  # noqa: ANN001, ANN202, PLR0913
     """Row r of the outputs from Gaussian order[r]: its point, its traits (colour, opacity and log-scales divided by
     scales [3] in float32, then its axis u), whether it is round and flat."""
-    for r in range(order.shape[0]):
+    for r in prange(order.shape[0]):
         s = order[r]
         for c in range(3):
             p_out[r, c] = p[s, c]
@@ -391,20 +392,20 @@ def _gather_kernel(order, p, rgb, opacity, log_scales, u, round_, flat, scales, 
         flat_out[r] = flat[s]
 
 
-@compiled
+@compiled_parallel
 def _reflect_kernel(p, idx, d, n, out):  # noqa: ANN001, ANN202
     """out [M, 3] = p[idx] - 2 d[idx] n: the reflections of points idx [M] across the plane of normal n [3] (d [N]
     their signed distances to it)."""
-    for r in range(idx.shape[0]):
+    for r in prange(idx.shape[0]):
         i = idx[r]
         for c in range(3):
             out[r, c] = p[i, c] - 2.0 * d[i] * n[c]
 
 
-@compiled
+@compiled_parallel
 def _distance_kernel(p, n, offset, out):  # noqa: ANN001, ANN202
     """out [N] = p [N, 3] . n [3] - offset."""
-    for r in range(p.shape[0]):
+    for r in prange(p.shape[0]):
         out[r] = p[r, 0] * n[0] + p[r, 1] * n[1] + p[r, 2] * n[2] - offset
 
 

@@ -7,11 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import prange
 from torch import Tensor
 
 from ..scene import GaussianScene
 from .clusters import Clusters
-from .compiled import compiled
+from .compiled import compiled, compiled_parallel
 
 
 def _ranges(starts: Tensor, lengths: Tensor) -> Tensor:
@@ -108,13 +109,13 @@ def _enumerate_kernel(order, starts, sizes, i, j):  # noqa: ANN001, ANN202
                 r += 1
 
 
-@compiled
+@compiled_parallel
 def _sample_kernel(order, starts, sizes, cdf, u, ra, rb, i, j):  # noqa: ANN001, ANN202
     """``sample_pairs`` of the clusters (starts [K], sizes [K], cdf [K] of n (n - 1)) from its random numbers
     (u [S] float64 scaled to the cdf's total, ra [S] and rb [S] float32 in [0, 1)), as indices through order [N]
     into i [S] and j [S]. The member ranks are float32 products truncated, as torch computed them before."""
     last = starts.shape[0] - 1
-    for r in range(u.shape[0]):
+    for r in prange(u.shape[0]):
         k = min(np.searchsorted(cdf, u[r], side="right"), last)
         n = sizes[k]
         a = min(int(ra[r] * np.float32(n)), n - 1)
@@ -151,12 +152,12 @@ def distinct_axes(scene: GaussianScene, min_ratio: float) -> Axes:
     return Axes(*(torch.from_numpy(t).to(device) for t in (u, is_round, flat)))
 
 
-@compiled
+@compiled_parallel
 def _axes_kernel(s, idx, q, log_ratio, u, round_, flat):  # noqa: ANN001, ANN202
     """``distinct_axes`` of sorted log-scales s [N, 3] (their axes idx [N, 3]) and unit quaternions q [N, 4] (wxyz)
     into u [N, 3], round_ [N] and flat [N]; in float32, operation for operation as torch computed it before."""
     one, two = np.float32(1.0), np.float32(2.0)
-    for r in range(s.shape[0]):
+    for r in prange(s.shape[0]):
         gap_small = s[r, 1] - s[r, 0]  # log-ratio of the middle to the shortest scale
         gap_large = s[r, 2] - s[r, 1]
         axis = idx[r, 0] if gap_small >= gap_large else idx[r, 2]

@@ -6,11 +6,14 @@ import math
 
 import numpy as np
 import torch
+from numba import prange
 from torch import Tensor
 
-from .compiled import compiled
+from .compiled import compiled, compiled_parallel
 from .grid import GridSpec
 from .pairs import Axes
+
+_PARTS = 16  # pairs are voted in this many parts, in parallel; any count gives the same votes
 
 
 def cast_votes(
@@ -38,8 +41,11 @@ def cast_votes(
     su, sv, sg = spec.shape
     sizes = np.array([spec.cell, spec.depth, spec.seam_z, max_d2, -1.0 if min_cos is None else min_cos])
     dims = np.array([spec.half_uv, spec.half_g, su, sv, sg], dtype=np.int64)
-    votes = _vote_kernel(p, u, round_, a, b, sizes, dims, cells, vi, vj)
-    t = lambda v: torch.from_numpy(v[:votes])  # noqa: E731
+    step = -(-count // _PARTS)
+    written = np.zeros(_PARTS, dtype=np.int64)
+    _vote_kernel(p, u, round_, a, b, sizes, dims, step, cells, vi, vj, written)
+    # Part k wrote its votes from 2 k step on: joined in order, they are the votes of the pairs in order.
+    t = lambda v: torch.from_numpy(np.concatenate([v[2 * k * step :][: written[k]] for k in range(_PARTS)]))  # noqa: E731
     return t(cells), t(vi), t(vj)
 
 
@@ -57,13 +63,22 @@ def _cell(n0, n1, n2, g, cell, depth, dims):  # noqa: ANN001, ANN202
     return (iu * sv + iv) * sg + ig
 
 
+@compiled_parallel
+def _vote_kernel(x, u, round_, a, b, sizes, dims, step, cells, vi, vj, written):  # noqa: ANN001, ANN202
+    """``cast_votes`` into cells, vi, vj [2 P], in parts of ``step`` pairs run in parallel: part k writes the votes
+    of pairs k step.. from position 2 k step on, and their count into written[k]."""
+    for part in prange(written.shape[0]):
+        first, stop = part * step, min((part + 1) * step, a.shape[0])
+        written[part] = _vote_part(x, u, round_, a, b, first, stop, sizes, dims, cells, vi, vj)
+
+
 @compiled
-def _vote_kernel(x, u, round_, a, b, sizes, dims, cells, vi, vj):  # noqa: ANN001, ANN202
-    """``cast_votes`` into cells, vi, vj [2 P]; returns how many votes were written. sizes: cell, depth, seam_z,
+def _vote_part(x, u, round_, a, b, first, stop, sizes, dims, cells, vi, vj):  # noqa: ANN001, ANN202
+    """The votes of pairs first..stop - 1 from position 2 first on; returns how many. sizes: cell, depth, seam_z,
     max_d2 and min_cos (negative: no pruning); dims: as ``_cell``."""
     cell, depth, seam_z, max_d2, min_cos = sizes[0], sizes[1], sizes[2], sizes[3], sizes[4]
-    v = 0
-    for r in range(a.shape[0]):
+    v = 2 * first
+    for r in range(first, stop):
         p, q = a[r], b[r]
         d0 = float(x[p, 0]) - float(x[q, 0])
         d1 = float(x[p, 1]) - float(x[q, 1])
@@ -93,4 +108,4 @@ def _vote_kernel(x, u, round_, a, b, sizes, dims, cells, vi, vj):  # noqa: ANN00
             if c >= 0:
                 cells[v], vi[v], vj[v] = c, p, q
                 v += 1
-    return v
+    return v - 2 * first
