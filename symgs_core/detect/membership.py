@@ -119,8 +119,8 @@ class Matcher:
         # Coincident Gaussians have no spacing; fall back to a tiny fraction of the frame (radius 1).
         self.typical = float(np.median(positive)) if positive.size else 1e-3
         voxel = _VOXEL_SPACINGS * self.typical
-        key = np.clip(np.floor(self.p / voxel), -(2**20), 2**20 - 1).astype(np.int64) + 2**20
-        packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
+        packed = np.empty(n, dtype=np.int64)
+        _voxel_kernel(self.p, voxel, packed)
         _, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
         self.voxel = inverse.reshape(-1)
         self.voxels = counts.size
@@ -400,6 +400,18 @@ def _reflect_kernel(p, idx, d, n, out):  # noqa: ANN001, ANN202
         i = idx[r]
         for c in range(3):
             out[r, c] = p[i, c] - 2.0 * d[i] * n[c]
+
+
+@compiled_parallel
+def _voxel_kernel(p, voxel, packed):  # noqa: ANN001, ANN202
+    """packed [N]: the voxel of each point p [N, 3] (side ``voxel``), its three cell coordinates clamped to 21 bits
+    (offset by 2^20) and packed into one int64."""
+    for r in prange(p.shape[0]):
+        code = 0
+        for c in range(3):
+            cell = min(max(math.floor(p[r, c] / voxel), -(2**20)), 2**20 - 1) + 2**20
+            code = (code << 21) | cell
+        packed[r] = code
 
 
 @compiled_parallel

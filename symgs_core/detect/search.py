@@ -54,9 +54,12 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     """
     config = config or DetectConfig()
     known = list(exclude)
-    finite = torch.ones(len(scene), dtype=torch.bool, device=scene.device)
-    for t in (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats):
-        finite &= torch.isfinite(t).all(dim=1)
+    parts = (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats)
+    # A finite row sum has finite terms; a non-finite one may be finite terms that overflow: those rows are checked.
+    finite = torch.isfinite(sum(t.sum(dim=1) for t in parts))
+    suspect = torch.nonzero(~finite)[:, 0]
+    if suspect.numel():
+        finite[suspect] = torch.cat([torch.isfinite(t[suspect]) for t in parts], dim=1).all(dim=1)
     working = torch.nonzero(finite)[:, 0]
     # Detection reads no higher SH bands: the working sets need not copy them, nor the whole scene be copied at all.
     light = scene.with_(sh_rest=scene.sh_rest[:, :0])
