@@ -119,10 +119,9 @@ class Matcher:
         # Coincident Gaussians have no spacing; fall back to a tiny fraction of the frame (radius 1).
         self.typical = float(np.median(positive)) if positive.size else 1e-3
         voxel = _VOXEL_SPACINGS * self.typical
-        packed = np.empty(n, dtype=np.int64)
-        _voxel_kernel(self.p, voxel, packed)
-        _, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
-        self.voxel = inverse.reshape(-1)
+        # Voxels numbered in the order of their cell coordinates (x, then y, then z), as a sort of the keys would.
+        self.voxel = np.empty(n, dtype=np.int64)
+        counts = _voxel_kernel(self.p, voxel, self.voxel)
         self.voxels = counts.size
         # On a surface a voxel holds about (voxel / 2 spacing)^2 Gaussians: the local spacing follows from its count,
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
@@ -402,16 +401,51 @@ def _reflect_kernel(p, idx, d, n, out):  # noqa: ANN001, ANN202
             out[r, c] = p[i, c] - 2.0 * d[i] * n[c]
 
 
-@compiled_parallel
-def _voxel_kernel(p, voxel, packed):  # noqa: ANN001, ANN202
-    """packed [N]: the voxel of each point p [N, 3] (side ``voxel``), its three cell coordinates clamped to 21 bits
-    (offset by 2^20) and packed into one int64."""
-    for r in prange(p.shape[0]):
-        code = 0
+@compiled
+def _voxel_kernel(p, voxel, label):  # noqa: ANN001, ANN202
+    """The voxel (side ``voxel``) of each point p [N, 3] into label [N], voxels numbered in the order of their cell
+    coordinates (clamped to +-2^20); returns the points per voxel [V]. The cells, less their minimum, are packed into
+    as few bits as they need and sorted by LSD radix sort, 16 bits a pass (two passes for most scenes)."""
+    n = p.shape[0]
+    cells = np.empty((n, 3), dtype=np.int64)
+    lo = np.full(3, 2**20, dtype=np.int64)
+    hi = np.full(3, -(2**20), dtype=np.int64)
+    for r in range(n):
         for c in range(3):
-            cell = min(max(math.floor(p[r, c] / voxel), -(2**20)), 2**20 - 1) + 2**20
-            code = (code << 21) | cell
-        packed[r] = code
+            cell = min(max(math.floor(p[r, c] / voxel), -(2**20)), 2**20 - 1)
+            cells[r, c] = cell
+            lo[c] = min(lo[c], cell)
+            hi[c] = max(hi[c], cell)
+    bits = np.zeros(3, dtype=np.int64)
+    for c in range(3):
+        while (hi[c] - lo[c]) >> bits[c]:
+            bits[c] += 1
+    key = np.empty(n, dtype=np.int64)
+    for r in range(n):
+        key[r] = (((cells[r, 0] - lo[0]) << bits[1]) | (cells[r, 1] - lo[1])) << bits[2] | (cells[r, 2] - lo[2])
+    order = np.arange(n)
+    spare = np.empty(n, dtype=np.int64)
+    shift = 0
+    while shift < bits[0] + bits[1] + bits[2]:
+        counts = np.zeros((1 << 16) + 1, dtype=np.int64)
+        for r in range(n):
+            counts[((key[r] >> shift) & 0xFFFF) + 1] += 1
+        for d in range(1, counts.shape[0]):
+            counts[d] += counts[d - 1]
+        for r in range(n):
+            digit = (key[order[r]] >> shift) & 0xFFFF
+            spare[counts[digit]] = order[r]
+            counts[digit] += 1
+        order, spare = spare, order
+        shift += 16
+    sizes = np.zeros(n, dtype=np.int64)
+    v = -1
+    for r in range(n):
+        if r == 0 or key[order[r]] != key[order[r - 1]]:
+            v += 1
+        label[order[r]] = v
+        sizes[v] += 1
+    return sizes[: v + 1]
 
 
 @compiled_parallel
