@@ -47,18 +47,6 @@ def benchmark_scene(n: int):  # noqa: ANN201 - SyntheticScene
     return synthetic_scene("global", n=n, seed=0, parts=40, clutter=0.3, noise=0.002, pose=Pose.random(0))
 
 
-def angle_deg(a: Plane, b: Plane) -> float:
-    cos = abs(sum(x * y for x, y in zip(a.normal, b.normal, strict=True)))
-    return math.degrees(math.acos(min(1.0, cos)))
-
-
-def offset_gap(a: Plane, b: Plane, point: torch.Tensor) -> float:
-    p = point.double()
-    da = float(torch.tensor(a.normal, dtype=torch.float64) @ p) - a.offset
-    db = float(torch.tensor(b.normal, dtype=torch.float64) @ p) - b.offset
-    return abs(da - db) if sum(x * y for x, y in zip(a.normal, b.normal, strict=True)) >= 0 else abs(da + db)
-
-
 def peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -165,8 +153,8 @@ def worker(n: int, repeats: int, with_all_pairs: bool) -> dict:
         "plane_seconds": med(lambda r: sum(r[1][0].timings.get(k, 0.0) for k in PLANE_STEPS)),
         "membership_seconds": med(lambda r: r[1][0].timings.get("membership", 0.0)),
         "steps": {k: med(lambda r, k=k: r[1][0].timings.get(k, 0.0)) for k in m.timings},
-        "angle_deg": angle_deg(m.plane, planted),
-        "offset_pct_radius": 100 * offset_gap(m.plane, planted, frame.centre) / frame.radius,
+        "angle_deg": m.plane.angle_deg(planted),
+        "offset_pct_radius": 100 * m.plane.gap_at(planted, frame.centre) / frame.radius,
         "coverage": m.coverage,
         "votes": m.votes,
         "peak_mib": peak_mib(),
@@ -180,9 +168,9 @@ def worker(n: int, repeats: int, with_all_pairs: bool) -> dict:
             "pairs": ap["pairs"],
             "seconds": ap["seconds"],
             "peak_votes": ap["peak_votes"],
-            "angle_to_ours_deg": angle_deg(ap["plane"], m.plane),
-            "offset_to_ours_pct_radius": 100 * offset_gap(ap["plane"], m.plane, frame.centre) / frame.radius,
-            "angle_to_planted_deg": angle_deg(ap["plane"], planted),
+            "angle_to_ours_deg": ap["plane"].angle_deg(m.plane),
+            "offset_to_ours_pct_radius": 100 * ap["plane"].gap_at(m.plane, frame.centre) / frame.radius,
+            "angle_to_planted_deg": ap["plane"].angle_deg(planted),
             "cell_deg": math.degrees(ap["cell_radians"]),
             "cell_pct_radius": 100 * ap["cell_offset"] / frame.radius,
         }

@@ -10,6 +10,7 @@ Scales and opacities are unchanged.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -59,6 +60,20 @@ class Plane:
     def signed_distance(self, points: Tensor) -> Tensor:
         n, g = self.tensor(points.device, points.dtype)
         return points @ n - g
+
+    def angle_deg(self, other: Plane) -> float:
+        """Angle between the two planes in degrees, 0..90 (a normal and its negation are one plane)."""
+        cos = abs(sum(x * y for x, y in zip(self.normal, other.normal, strict=True)))
+        return math.degrees(math.acos(min(1.0, cos)))
+
+    def gap_at(self, other: Plane, point: Tensor) -> float:
+        """How far apart the two planes lie at ``point`` [3]: the difference of its signed distances to them, with
+        the normals turned the same way."""
+        p = point.detach().to(torch.float64)
+        mine = float(self.signed_distance(p))
+        theirs = float(other.signed_distance(p))
+        aligned = sum(x * y for x, y in zip(self.normal, other.normal, strict=True)) >= 0
+        return abs(mine - (theirs if aligned else -theirs))
 
 
 def householder(normal: Tensor) -> Tensor:

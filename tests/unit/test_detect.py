@@ -15,20 +15,6 @@ from symgs_core.synthetic import Pose, synthetic_scene
 from tests.conftest import shared_file
 
 
-def angle_deg(a: Plane, b: Plane) -> float:
-    cos = abs(sum(x * y for x, y in zip(a.normal, b.normal, strict=True)))
-    return math.degrees(math.acos(min(1.0, cos)))
-
-
-def offset_gap(a: Plane, b: Plane, point: torch.Tensor) -> float:
-    """Difference of the signed distances of ``point`` to the two planes (normals aligned)."""
-    p = point.double()
-    da = float(torch.tensor(a.normal, dtype=torch.float64) @ p) - a.offset
-    db = float(torch.tensor(b.normal, dtype=torch.float64) @ p) - b.offset
-    aligned = sum(x * y for x, y in zip(a.normal, b.normal, strict=True)) >= 0
-    return abs(da - (db if aligned else -db))
-
-
 def precision_recall(m: Mirror, left: torch.Tensor, right: torch.Tensor) -> tuple[float, float]:
     """Of the found left/right against the planted halves, whichever way round the detector kept them."""
     fl, fr = set(m.left.tolist()), set(m.right.tolist())
@@ -54,8 +40,8 @@ def test_global_mirror_recovered_under_clutter_noise_and_any_pose(seed: int) -> 
     mirrors = detect(s.scene, DetectConfig(max_mirrors=1))
     assert len(mirrors) == 1
     frame = normalised_frame(s.scene.means, 0.99)
-    assert angle_deg(mirrors[0].plane, s.planes[0]) < 0.5
-    assert offset_gap(mirrors[0].plane, s.planes[0], frame.centre) < 0.005 * frame.radius
+    assert mirrors[0].plane.angle_deg(s.planes[0]) < 0.5
+    assert mirrors[0].plane.gap_at(s.planes[0], frame.centre) < 0.005 * frame.radius
     assert mirrors[0].plane == mirrors[0].plane.canonical()
 
 
@@ -64,7 +50,7 @@ def test_plane_on_the_hemisphere_seam_found_end_to_end() -> None:
     s = synthetic_scene("global", n=3000, seed=4, clutter=0.2, noise=0.002)
     assert s.planes[0].normal[2] == 0.0
     (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
-    assert angle_deg(m.plane, s.planes[0]) < 0.05
+    assert m.plane.angle_deg(s.planes[0]) < 0.05
     precision, recall = precision_recall(m, s.left[0], s.right[0])
     assert precision >= 0.95 and recall >= 0.95
 
@@ -73,8 +59,8 @@ def test_real_capture_halves_still_give_the_plane() -> None:
     s = synthetic_scene("global", n=4000, seed=3, capture="independent", clutter=0.2, noise=0.002, pose=Pose.random(3))
     (m,) = detect(s.scene, DetectConfig(max_mirrors=1))
     frame = normalised_frame(s.scene.means, 0.99)
-    assert angle_deg(m.plane, s.planes[0]) < 0.5
-    assert offset_gap(m.plane, s.planes[0], frame.centre) < 0.005 * frame.radius
+    assert m.plane.angle_deg(s.planes[0]) < 0.5
+    assert m.plane.gap_at(s.planes[0], frame.centre) < 0.005 * frame.radius
     precision, recall = precision_recall(m, s.left[0], s.right[0])
     assert precision > 0.9 and recall > 0.5
     assert m.coverage > 0.4
@@ -97,7 +83,7 @@ def test_local_mirrors_of_different_sizes_found_larger_first_with_their_halves()
     mirrors = detect(s.scene, DetectConfig(max_mirrors=3))
     assert len(mirrors) == 3
     for m, plane, left, right in zip(mirrors, s.planes, s.left, s.right, strict=True):
-        assert angle_deg(m.plane, plane) < 0.5
+        assert m.plane.angle_deg(plane) < 0.5
         precision, recall = precision_recall(m, left, right)
         assert precision >= 0.95 and recall >= 0.95
     assert len(mirrors[0].left) > len(mirrors[1].left) > len(mirrors[2].left)
@@ -111,14 +97,14 @@ def test_nested_mirror_found_inside_the_kept_half() -> None:
     s = synthetic_scene("nested", n=5000, seed=1, clutter=0.1)
     mirrors = detect(s.scene, DetectConfig(max_mirrors=2))
     assert len(mirrors) == 2
-    assert angle_deg(mirrors[0].plane, s.planes[0]) < 0.5
+    assert mirrors[0].plane.angle_deg(s.planes[0]) < 0.5
     # The local mirror lies in whichever half was kept: the planted one, or its reflection across the global plane.
     local = s.planes[1]
     n, g = local.tensor(dtype=torch.float64)
     gn, gg = s.planes[0].tensor(dtype=torch.float64)
     twin_n = n - 2 * (n @ gn) * gn
     twin = Plane.from_tensor(twin_n, g - 2 * (n @ gn) * gg)
-    assert min(angle_deg(mirrors[1].plane, local), angle_deg(mirrors[1].plane, twin)) < 0.5
+    assert min(mirrors[1].plane.angle_deg(local), mirrors[1].plane.angle_deg(twin)) < 0.5
     assert set(mirrors[1].left.tolist()) <= set(mirrors[0].left.tolist()) | set(mirrors[0].out.tolist())
 
 
@@ -166,7 +152,7 @@ def test_one_colour_and_non_finite_gaussians() -> None:
     s = synthetic_scene("global", n=3000, seed=2)
     flat = s.scene.with_(sh_dc=torch.zeros_like(s.scene.sh_dc), opacities=torch.zeros_like(s.scene.opacities))
     (m,) = detect(flat, DetectConfig(max_mirrors=1))
-    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    assert m.plane.angle_deg(s.planes[0]) < 0.5
     broken = s.scene.means.clone()
     broken[:10] = float("nan")
     huge = s.scene.scales.clone()
@@ -175,7 +161,7 @@ def test_one_colour_and_non_finite_gaussians() -> None:
     members = set(m.left.tolist()) | set(m.right.tolist()) | set(m.out.tolist())
     assert not set(range(10)) & members and {10, 11} <= members
     assert len(members) == len(s.scene) - 10
-    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    assert m.plane.angle_deg(s.planes[0]) < 0.5
 
 
 def test_result_does_not_depend_on_order_and_is_deterministic() -> None:
@@ -185,7 +171,7 @@ def test_result_does_not_depend_on_order_and_is_deterministic() -> None:
     assert a.plane == b.plane and torch.equal(a.left, b.left)
     perm = torch.randperm(len(s.scene), generator=torch.Generator().manual_seed(0))
     c = detect(s.scene.select(perm), DetectConfig(max_mirrors=1))[0]
-    assert angle_deg(a.plane, c.plane) < 0.05
+    assert a.plane.angle_deg(c.plane) < 0.05
     assert abs(len(perm[c.left]) - len(a.left)) <= 0.01 * len(a.left)
 
 
@@ -193,7 +179,7 @@ def test_exclude_skips_known_planes() -> None:
     s = synthetic_scene("local", n=4000, seed=2)
     first = detect(s.scene, DetectConfig(max_mirrors=1))[0]
     again = detect(s.scene, DetectConfig(max_mirrors=1), exclude=[first.plane])
-    assert again and angle_deg(again[0].plane, first.plane) > 5
+    assert again and again[0].plane.angle_deg(first.plane) > 5
 
 
 def test_importable_from_the_package_root_whatever_was_imported_first() -> None:
@@ -202,7 +188,7 @@ def test_importable_from_the_package_root_whatever_was_imported_first() -> None:
     s = synthetic_scene("global", n=1500, seed=0)
     # The name is bound to the detect package once it is imported; calling it still runs detection.
     (m,) = symgs_core.detect(s.scene, DetectConfig(max_mirrors=1))
-    assert angle_deg(m.plane, s.planes[0]) < 0.5
+    assert m.plane.angle_deg(s.planes[0]) < 0.5
     assert symgs_core.DetectConfig is DetectConfig and symgs_core.Mirror is Mirror
 
 
@@ -220,7 +206,7 @@ def test_same_code_on_cuda() -> None:
     s = synthetic_scene("global", n=3000, seed=0, clutter=0.3)
     (cpu,) = detect(s.scene, DetectConfig(max_mirrors=1))
     (gpu,) = detect(s.scene.to("cuda"), DetectConfig(max_mirrors=1))
-    assert angle_deg(cpu.plane, gpu.plane) < 0.05
+    assert cpu.plane.angle_deg(gpu.plane) < 0.05
     assert gpu.left.device.type == "cuda"
 
 
@@ -231,7 +217,7 @@ def test_playbot_left_right_plane() -> None:
     scene = load_scene(shared_file("playbot_cc_by_sa3d/playbot_lod2_125k_sh2.ply"))
     (m,) = detect(scene, DetectConfig(max_mirrors=1))
     x_plane = Plane((1.0, 0.0, 0.0), 0.0)
-    assert angle_deg(m.plane, x_plane) < 2.0
+    assert m.plane.angle_deg(x_plane) < 2.0
     frame = normalised_frame(scene.means, 0.99)
     # The plane passes within 1% of the radius of the median of the means.
     assert (

@@ -202,3 +202,14 @@ def test_rendering_the_reflection_from_the_mirrored_camera_gives_the_mirror_imag
     assert original.shape == (40, 48, 3) and original.std() > 0.05
     torch.testing.assert_close(mirrored, original.flip(1), rtol=0, atol=2e-4)
     assert not math.isclose(float((original - original.flip(1)).abs().max()), 0.0, abs_tol=1e-2)
+
+
+def test_plane_angle_and_gap_against_exact_values() -> None:
+    x = Plane((1.0, 0.0, 0.0), 0.5)
+    tilted = Plane((math.cos(math.radians(30)), math.sin(math.radians(30)), 0.0), 0.0)
+    assert x.angle_deg(tilted) == pytest.approx(30.0, abs=1e-9)
+    flipped = Plane((-1.0, 0.0, 0.0), -0.2)  # x = 0.2, its normal turned the other way
+    assert x.angle_deg(flipped) == pytest.approx(0.0, abs=1e-9)
+    assert x.gap_at(flipped, torch.tensor([3.0, 1.0, -2.0])) == pytest.approx(0.3, abs=1e-12)
+    # At (0, 2, 0) the signed distances are -0.5 (to x = 0.5) and +1.0 (to the tilted plane through the origin).
+    assert x.gap_at(tilted, torch.tensor([0.0, 2.0, 0.0])) == pytest.approx(1.5, abs=1e-12)
