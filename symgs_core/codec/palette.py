@@ -38,6 +38,8 @@ from .quantize import (
     _step,
     _symbols,
     band_slices,
+    join_parts,
+    split_parts,
 )
 from .section import EncodedSection, SectionKind
 
@@ -174,22 +176,6 @@ def _cached_fit(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return entries, labels
 
 
-def _parts(payload: bytes, count: int, codec: str) -> list[bytes]:
-    """Split a payload of ``count`` length-prefixed parts; ArchiveError unless they fill it exactly."""
-    parts, pos = [], 0
-    for i in range(count):
-        if pos + 4 > len(payload):
-            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
-        length = int.from_bytes(payload[pos : pos + 4], "little")
-        parts.append(payload[pos + 4 : pos + 4 + length])
-        if len(parts[-1]) != length:
-            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
-        pos += 4 + length
-    if pos != len(payload):
-        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
-    return parts
-
-
 @dataclass(frozen=True)
 class ShPaletteCodec:
     """Higher SH [N, K, 3] as a palette of at most ``size`` vectors (the zero vector first) and an index per row.
@@ -237,7 +223,7 @@ class ShPaletteCodec:
             coded, flag = _smaller(stored[:, s, :], (len(stored), 3 * (s.stop - s.start)))
             parts.append(coded)
             mixed.append(flag)
-        payload = b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+        payload = join_parts(parts)
         params = {"size": len(order), "steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
         return EncodedSection(payload, _raw_length(values.shape), params)
 
@@ -259,7 +245,7 @@ class ShPaletteCodec:
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         n, k, _ = shape
         size, degree = params["size"], len(params["steps"])
-        parts = _parts(payload, degree + 1, self.name)
+        parts = split_parts(payload, degree + 1, self.name)
         index = decode_table(parts[0], n, 1, self.name)[:, 0]
         if n and (index.min() < 0 or index.max() >= size):
             raise ArchiveError("corrupt_section", f"{self.name}: a palette index lies outside 0..{size - 1}")

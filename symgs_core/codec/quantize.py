@@ -134,6 +134,27 @@ def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
     return table
 
 
+def join_parts(parts: list[bytes]) -> bytes:
+    """One payload of several streams, each behind its u32 length (``split_parts`` reads it back)."""
+    return b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+
+
+def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
+    """The ``count`` streams of a ``join_parts`` payload; ArchiveError unless they fill it exactly."""
+    parts, pos = [], 0
+    for i in range(count):
+        if pos + 4 > len(payload):
+            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
+        length = int.from_bytes(payload[pos : pos + 4], "little")
+        parts.append(payload[pos + 4 : pos + 4 + length])
+        if len(parts[-1]) != length:
+            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
+        pos += 4 + length
+    if pos != len(payload):
+        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
+    return parts
+
+
 @dataclass(frozen=True)
 class PositionCodec:
     """Positions [N, 3] on a cube grid of ``step`` world units from the bounding box's low corner."""
@@ -320,7 +341,7 @@ class ShRestCodec:
             coded, flag = _smaller(kept, (kept.size, 1))
             parts.append(coded)
             mixed.append(flag)
-        payload = b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+        payload = join_parts(parts)
         params = {"steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
         return EncodedSection(payload, _raw_length(values.shape), params)
 
@@ -338,17 +359,7 @@ class ShRestCodec:
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         n, k, _ = shape
         degree = len(params["steps"])
-        parts, pos = [], 0
-        for _ in range(degree + 1):
-            if pos + 4 > len(payload):
-                raise ArchiveError("corrupt_section", f"{self.name}: payload ends before part {len(parts)}")
-            length = int.from_bytes(payload[pos : pos + 4], "little")
-            parts.append(payload[pos + 4 : pos + 4 + length])
-            if len(parts[-1]) != length:
-                raise ArchiveError("corrupt_section", f"{self.name}: part {len(parts) - 1} is cut short")
-            pos += 4 + length
-        if pos != len(payload):
-            raise ArchiveError("corrupt_section", f"{self.name}: {len(payload) - pos} bytes after the last band")
+        parts = split_parts(payload, degree + 1, self.name)
         per = decode_table(parts[0], n, 1, self.name)[:, 0]
         if n and (per.min() < 0 or per.max() > degree):
             raise ArchiveError("corrupt_section", f"{self.name}: a Gaussian's degree lies outside 0..{degree}")
