@@ -57,6 +57,13 @@ def extent_of(stored: GaussianScene) -> float:
     return float((means.max(dim=0).values - means.min(dim=0).values).max())
 
 
+def held_out_psnr(
+    state: LevelState, stored: GaussianScene, test: list[tuple[Camera, Tensor]], background: Tensor
+) -> float:
+    """PSNR on the held-out views of ``state``'s levels with ``stored`` (a decoded copy) in place of its stored set."""
+    return evaluate(LevelState(stored, state.normals, state.offsets, state.bits).expanded(), test, background)[0]
+
+
 def quantized(stored: GaussianScene, steps: QuantSteps, sections: tuple[str, ...] | None = None) -> GaussianScene:
     """``stored`` as a reader of its quantised archive decodes it (every section encoded, then decoded); only the
     attributes named in ``sections`` when given, the others exact."""
@@ -126,8 +133,7 @@ def balance_steps(
     stored = state.stored.detach()
 
     def excess(scene: GaussianScene) -> float:
-        value, _ = evaluate(LevelState(scene, state.normals, state.offsets, state.bits).expanded(), test, background)
-        return max(psnr_to_mse(value) - base, 0.0)
+        return max(psnr_to_mse(held_out_psnr(state, scene, test, background)) - base, 0.0)
 
     errors, components = {}, {}
     for name, (section, count) in _ATTRIBUTES.items():
@@ -191,8 +197,7 @@ def fit_quantization(
     factor, best, failed, tries = 1.0, None, math.inf, []
     for _ in range(max_tries):
         steps = start.scaled(factor)
-        decoded = LevelState(quantized(state.stored, steps), state.normals, state.offsets, state.bits)
-        value, _ = evaluate(decoded.expanded(), test, background)
+        value = held_out_psnr(state, quantized(state.stored, steps), test, background)
         tries.append({"factor": factor, "psnr": value})
         if value >= floor and (best is None or factor > best.factor):
             best = QuantFit(steps, factor, value, tries)
@@ -238,8 +243,7 @@ def coarsen_one_by_one(
     while candidates and len(tries) - len(fit.tries) < max_tries:
         attribute, which = candidates.pop(0)
         steps = _times(best.steps, attribute, factors[which])
-        decoded = LevelState(quantized(state.stored, steps), state.normals, state.offsets, state.bits)
-        value, _ = evaluate(decoded.expanded(), test, background)
+        value = held_out_psnr(state, quantized(state.stored, steps), test, background)
         tries.append({"coarsen": attribute, "by": factors[which], "psnr": value})
         if value >= floor:
             best = QuantFit(steps, best.factor, value, tries)
@@ -293,6 +297,6 @@ def fit_steps(
             fits.append(coarsen_one_by_one(state, test, background, fit, floor=floor, order=order))
     if not fits:
         return None
-    best = min(fits, key=lambda f: archive_bytes(state.stored, f.steps))
+    best = fits[0] if len(fits) == 1 else min(fits, key=lambda f: archive_bytes(state.stored, f.steps))
     best.probe_errors = balanced.errors
     return best
