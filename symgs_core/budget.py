@@ -9,8 +9,8 @@ the next, and quantisation, which always runs last, takes whatever remains.
 Quantisation spends its share in three moves (``fit_steps``): the preset's steps are balanced on the scene's own
 renders so that every coded component carries the same error (``balance_steps``), their common factor is fitted to
 the floor (``fit_quantization``), and what that leaves is spent one attribute at a time (``coarsen_one_by_one``).
-Measured on the plant capture (113k, SH 0) at the 60.36 dB of `.spz` v3: 1,363,595 bytes with one factor for the
-preset's steps, 1,184,845 after all three (13% smaller).
+On the plant capture (113k, SH 0) at the 60.36 dB of `.spz` v3: 1,363,603 bytes with one factor for the preset's
+steps, 1,184,853 after all three (BENCHMARKS.md, Codec: ``benchmarks/bench_steps.py``).
 """
 
 from __future__ import annotations

@@ -1,0 +1,90 @@
+"""Quantisation alone: one common factor on the preset's steps against the fitted steps, and the SH palette's section.
+
+For each scene and floor (PSNR against renders of the input from held-out cameras, as ``symgs bench`` measures), no
+mirrors, pruning or SH reduction: ``budget.fit_quantization`` from ``QuantSteps()`` (one factor for every step), then
+``budget.fit_steps`` (balanced steps, common factor, one attribute at a time, SH per coefficient or as a palette).
+Prints each archive's bytes, held-out PSNR and bytes per section. ``--palette-sizes`` also codes each scene's higher
+SH bands alone, per coefficient and as palettes of those sizes, on the same steps, with the RMS error of each.
+
+    python benchmarks/bench_steps.py ../shared/data/padilla_captures_cc_by/plant_113k_sh0.ply --floors 60.36
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from pathlib import Path
+
+# Waiting OpenMP threads must sleep, not spin, on a shared machine (see symgs_core/__init__.py); before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from symgs_core.budget import extent_of, fit_quantization, fit_steps  # noqa: E402
+from symgs_core.codec import read_header  # noqa: E402
+from symgs_core.codec.palette import ShPaletteCodec  # noqa: E402
+from symgs_core.codec.quantize import ShRestCodec  # noqa: E402
+from symgs_core.codec.steps import QuantSteps, register_quantized  # noqa: E402
+from symgs_core.optimize import LevelState  # noqa: E402
+from symgs_core.ply import load_scene  # noqa: E402
+from symgs_core.stages import write_archive  # noqa: E402
+from symgs_core.views import self_supervised_views  # noqa: E402
+
+
+def _row(name: str, state: LevelState, fit, seconds: float) -> str:  # noqa: ANN001 - QuantFit
+    archive = write_archive(state, {}, register_quantized("bench-steps", fit.steps, extent_of(state.stored)))
+    sections = ", ".join(f"{s['name']} {s['length']:,}" for s in read_header(archive)["sections"])
+    palette = f", SH palette {fit.steps.sh_palette:,}" if fit.steps.sh_palette else ""
+    return f"  {name}: {len(archive):,} B, {fit.psnr:.2f} dB, {seconds:.0f} s ({sections}{palette})"
+
+
+def palette_rows(sh_rest: np.ndarray, sizes: list[int], steps: tuple[float, ...]) -> list[str]:
+    """Bytes and RMS error of ``sh_rest`` [N, K, 3] per coefficient and as palettes of ``sizes``."""
+    out = []
+    for name, codec in [("per coefficient", ShRestCodec(steps))] + [
+        (f"palette {size:,}", ShPaletteCodec(size, steps)) for size in sizes
+    ]:
+        coded = codec.encode(sh_rest)
+        decoded = codec.decode(coded.payload, sh_rest.shape, coded.params, coded.raw_length)
+        rms = float(np.sqrt(np.mean((decoded.astype(np.float64) - sh_rest) ** 2)))
+        out.append(f"  sh_rest {name}: {len(coded.payload):,} B, RMS error {rms:.4f}")
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scenes", nargs="+", type=Path)
+    parser.add_argument("--floors", required=True, help="comma-separated floor (dB) per scene")
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--train-views", type=int, default=16)
+    parser.add_argument("--eval-views", type=int, default=8)
+    parser.add_argument("--palette-sizes", default="", help="comma-separated palette sizes for the SH section alone")
+    parser.add_argument("--palette-step-factor", type=float, default=3.0, help="SH steps: QuantSteps().sh times this")
+    args = parser.parse_args()
+    floors = [float(f) for f in args.floors.split(",")]
+    if len(floors) != len(args.scenes):
+        parser.error(f"{len(args.scenes)} scenes but {len(floors)} floors")
+    sizes = [int(s) for s in args.palette_sizes.split(",") if s]
+    for path, floor in zip(args.scenes, floors):
+        scene = load_scene(path)
+        views = self_supervised_views(scene, args.train_views, args.eval_views, args.resolution, torch.zeros(3))
+        test = [views.test[i] for i in range(len(views.test))]
+        state = LevelState.plain(scene)
+        print(f"{path.name}: {len(scene):,} Gaussians, SH degree {scene.sh_degree}, floor {floor:.2f} dB")
+        t0 = time.perf_counter()
+        common = fit_quantization(state, test, views.background, floor=floor, start=QuantSteps(),
+                                  psnr_before=math.inf)  # fmt: skip
+        print(_row("one common factor", state, common, time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        fitted = fit_steps(state, test, views.background, floor=floor, start=QuantSteps(), psnr_before=math.inf)
+        print(_row("fitted steps", state, fitted, time.perf_counter() - t0))
+        if sizes and scene.sh_degree:
+            steps = QuantSteps().scaled(args.palette_step_factor).sh
+            print("\n".join(palette_rows(scene.sh_rest.numpy(), sizes, steps)))
+
+
+if __name__ == "__main__":
+    main()
