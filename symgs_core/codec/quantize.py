@@ -4,7 +4,8 @@ A codec carries its step; the step, and whatever else decoding needs, is written
 one reader decodes every step a writer chose. The stored set arrives in ``coding_order`` (Morton order inside each
 level group), which is what makes position differences small.
 
-    positions   q = round((x - origin) / step), one step for all three axes (a cube grid in the bounding box)
+    positions   q = round((x - origin) / step), one step for all three axes (a cube grid in the bounding box); axes
+                all on one grid (.spz decodes) use it, origins fitted so the float32 values decode bit for bit
     rotations   smallest three: normalise, flip the sign so the largest component is positive, store its index and
                 the other three on a grid of ``step`` in [-1/sqrt2, 1/sqrt2]; decoding restores a unit quaternion
     log-scales  q = round((s - origin) / step)
@@ -36,6 +37,8 @@ SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
 MAX_GRID_LEVELS = 4096  # distinct values up to which an attribute is tested for a grid of its own
 GRID_TOLERANCE = 1e-3  # in grid cells: float32 storage of grid values stays far below it
+MAX_POSITION_GRID_LEVELS = 1 << 20  # distinct values per axis up to which positions are tested for a grid
+GRID_AGREEMENT = 1e-6  # relative difference up to which the three axes' grid steps count as one (float32)
 
 
 def _number(params: dict[str, Any], key: str, codec: str) -> float:
@@ -81,6 +84,31 @@ def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: st
     return q.astype(np.int64)
 
 
+def _grid_step(unique: np.ndarray, max_levels: int) -> float | None:
+    """Step of the uniform grid that the sorted distinct values ``unique`` [M] (float64) lie on, or None.
+
+    The smallest difference carries the values' float32 rounding: near magnitude 1 on 8000 cells its error adds up to
+    half a cell at the far end. It is refined on spans that at most double (a gap in the values excepted), each short
+    enough for the cell count to round right, before every value is tested against it.
+    """
+    if not 2 <= len(unique) <= max_levels:
+        return None
+    gap, k = float(np.diff(unique).min()), 0
+    while k < len(unique) - 1:
+        k = max(k + 1, int(np.searchsorted(unique, 2 * unique[k] - unique[0], side="right")) - 1)
+        span = float(unique[k] - unique[0])
+        gap = span / round(span / gap)
+    if span / gap >= MAX_LEVELS:
+        return None
+    cells = (unique - unique[0]) / gap
+    return gap if np.abs(cells - np.round(cells)).max() <= GRID_TOLERANCE else None
+
+
+def _multiple(gap: float, step: float) -> float:
+    """Whole multiples of ``gap`` at or below ``step``: the grid's own step whenever that is less than twice as fine."""
+    return gap * max(1, math.floor(step / gap))
+
+
 def native_grid(values: np.ndarray, step: float, *, through_zero: bool = False) -> tuple[float, float] | None:
     """(step, origin) of a uniform grid ``values`` already lie on, in whole multiples up to ``step``; else None.
 
@@ -89,21 +117,79 @@ def native_grid(values: np.ndarray, step: float, *, through_zero: bool = False) 
     their own entropy, where a foreign grid would add error and spend bits on precision the scene never had.
     ``through_zero``: the grid must contain 0 (the origin returned is then 0).
     """
-    unique = np.unique(values)
-    if not 2 <= len(unique) <= MAX_GRID_LEVELS:
+    unique = np.unique(values).astype(np.float64, copy=False)
+    gap = _grid_step(unique, MAX_GRID_LEVELS)
+    if gap is None:
         return None
-    gap = float(np.diff(unique).min())
-    cells = (unique - unique[0]) / gap
-    if gap <= 0 or np.abs(cells - np.round(cells)).max() > GRID_TOLERANCE:
-        return None
-    gap = float(unique[-1] - unique[0]) / round(float(cells[-1]))  # the span averages out the values' rounding
     origin = float(unique[0])
     if through_zero:
         if abs(origin / gap - round(origin / gap)) > GRID_TOLERANCE:
             return None
         origin = 0.0
-    # Whole multiples at or below the step asked for: the grid's own step whenever that is less than twice as fine.
-    return gap * max(1, math.floor(step / gap)), origin
+    return _multiple(gap, step), origin
+
+
+def _fit_grid(columns: list[np.ndarray], gap: float) -> tuple[float, np.ndarray]:
+    """One step and an origin per column [3] for the grids the sorted distinct float32 ``columns`` lie on, near ``gap``.
+
+    A float32 value stands for the interval of reals that round to it; a grid whose points origin + q * step (in
+    float64, as ``PositionCodec.decode`` computes them) fall inside every value's interval decodes the values exactly.
+    The step estimated from the span and the columns' minima fit grids through zero; grids shifted off zero (an .spz
+    decode moved by a fraction of a cell) miss their values near zero by far more than those values' float32
+    spacing. Then the step is found by bisection, as the worst shortfall between the origins some value needs and
+    those another allows is convex in the step, and each origin is the middle of the origins that step allows (the
+    column's minimum when that lies inside).
+    """
+    axes = []
+    for u in columns:
+        v = u.astype(np.float64)
+        lo = (v + np.nextafter(u, -np.inf).astype(np.float64)) / 2
+        hi = (v + np.nextafter(u, np.inf).astype(np.float64)) / 2
+        axes.append((np.round((v - v[0]) / gap), lo, hi))
+
+    def allowed(step: float) -> list[tuple[float, float, float]]:
+        """Per column: the origins its values allow, from low to high, and the slope of low - high in the step."""
+        out = []
+        for q, lo, hi in axes:
+            need, allow = lo - q * step, hi - q * step
+            i, j = int(need.argmax()), int(allow.argmin())
+            out.append((float(need[i]), float(allow[j]), float(q[j] - q[i])))
+        return out
+
+    def shortfall(step: float) -> tuple[float, float]:
+        """The worst column's low - high (no origin fits while it is positive) and its slope in the step."""
+        return max((low - high, slope) for low, high, slope in allowed(step))
+
+    def decodes(step: float, origin: list[float]) -> bool:
+        return all(np.array_equal((o + q * step).astype(np.float32), u) for o, (q, *_), u in zip(origin, axes, columns))
+
+    step, origin = gap, [float(u[0]) for u in columns]
+    if not decodes(step, origin):
+        # The first and last value of each column bound the step; the worst shortfall is least in between.
+        low = min((lo[-1] - hi[0]) / q[-1] for q, lo, hi in axes)
+        high = max((hi[-1] - lo[0]) / q[-1] for q, lo, hi in axes)
+        while low < (step := (low + high) / 2) < high:
+            slope = shortfall(step)[1]
+            if slope == 0:
+                break
+            low, high = (low, step) if slope > 0 else (step, high)
+        origin = [o if lo < o < hi else (lo + hi) / 2 for o, (lo, hi, _) in zip(origin, allowed(step))]
+    return step, np.array(origin)
+
+
+def _position_grid(values: np.ndarray, step: float) -> tuple[float, np.ndarray] | None:
+    """(step, origin [3]) of one grid that every axis of ``values`` [N, 3] (float32) already lies on, in whole
+    multiples up to ``step``, each origin the grid point at its axis' minimum; None unless the axes' grids agree.
+
+    Positions of scenes decoded from .spz sit on a grid of 1/4096 (or another power of two) per axis, each possibly
+    shifted off zero. An axis holding a single value has no grid of its own, so it keeps the step asked for.
+    """
+    columns = [np.unique(values[:, a]) for a in range(3)]
+    gaps = [_grid_step(c.astype(np.float64), MAX_POSITION_GRID_LEVELS) for c in columns]
+    if None in gaps or max(gaps) - min(gaps) > GRID_AGREEMENT * min(gaps):
+        return None
+    gap, origin = _fit_grid(columns, sum(gaps) / 3)
+    return _multiple(gap, step), origin
 
 
 def _decorrelate(q: np.ndarray) -> np.ndarray:
@@ -157,7 +243,8 @@ def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
 
 @dataclass(frozen=True)
 class PositionCodec:
-    """Positions [N, 3] on a cube grid of ``step`` world units from the bounding box's low corner."""
+    """Positions [N, 3] on a cube grid of ``step`` world units from the bounding box's low corner, or on the grid all
+    three axes already lie on (``_position_grid``), in whole multiples up to ``step``."""
 
     step: float
     name: str = field(default="q-pos", init=False)
@@ -165,9 +252,9 @@ class PositionCodec:
 
     def encode(self, values: np.ndarray) -> EncodedSection:
         x = _finite(values, self.name)
-        origin = x.min(axis=0) if len(x) else np.zeros(3)
-        q = _grid(x, origin, self.step, self.name)
-        params = {"origin": [float(o) for o in origin], "step": float(self.step)}
+        step, origin = _position_grid(values, self.step) or (self.step, x.min(axis=0) if len(x) else np.zeros(3))
+        q = _grid(x, origin, step, self.name)
+        params = {"origin": [float(o) for o in origin], "step": float(step)}
         return EncodedSection(encode_table(q), _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
