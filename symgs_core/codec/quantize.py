@@ -158,7 +158,7 @@ def _fit_grid(columns: list[np.ndarray], gap: float) -> tuple[float, np.ndarray]
 
     def shortfall(step: float) -> tuple[float, float]:
         """The worst column's low - high (no origin fits while it is positive) and its slope in the step."""
-        return max((low - high, slope) for low, high, slope in allowed(step))
+        return max((need - allow, slope) for need, allow, slope in allowed(step))
 
     def decodes(step: float, origin: list[float]) -> bool:
         return all(np.array_equal((o + q * step).astype(np.float32), u) for o, (q, *_), u in zip(origin, axes, columns))
@@ -182,7 +182,7 @@ def _position_grid(values: np.ndarray, step: float) -> tuple[float, np.ndarray] 
     multiples up to ``step``, each origin the grid point at its axis' minimum; None unless the axes' grids agree.
 
     Positions of scenes decoded from .spz sit on a grid of 1/4096 (or another power of two) per axis, each possibly
-    shifted off zero. An axis holding a single value has no grid of its own, so it keeps the step asked for.
+    shifted off zero. An axis holding a single value has no grid of its own: such positions keep the step asked for.
     """
     columns = [np.unique(values[:, a]) for a in range(3)]
     gaps = [_grid_step(c.astype(np.float64), MAX_POSITION_GRID_LEVELS) for c in columns]
