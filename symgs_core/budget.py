@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from .cameras import Camera
+from .codec.order import coding_order, grid_cells
 from .codec.quantize import band_slices
 from .codec.steps import QuantSteps
 from .optimize import LevelState, evaluate
@@ -257,8 +258,10 @@ def coarsen_one_by_one(
 def archive_bytes(stored: GaussianScene, steps: QuantSteps) -> int:
     """Bytes of the attribute sections of ``stored`` quantised with ``steps`` (the archive less header and masks)."""
     codecs = steps.codecs(extent_of(stored))
-    tensors = stored.detach().tensors()
-    return sum(len(codecs[k].encode(v.cpu().contiguous().numpy()).payload) for k, v in tensors.items())
+    stored = stored.detach().to("cpu")
+    bits = torch.zeros(len(stored), 0, dtype=torch.bool)
+    stored = stored.select(coding_order(stored, bits, grid_cells(codecs["means"], stored.means.numpy())))
+    return sum(len(codecs[k].encode(v.contiguous().numpy()).payload) for k, v in stored.tensors().items())
 
 
 def palette_start(sh_rest: Tensor) -> int:

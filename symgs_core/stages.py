@@ -18,6 +18,8 @@ from torch import Tensor
 from .budget import SHARES, archive_bytes, extent_of, fit_steps, split_budget
 from .codec import ArchiveContents, coding_order, encode_archive
 from .codec.frames import canonical_frames
+from .codec.order import grid_cells
+from .codec.registry import archive_codec
 from .codec.steps import QuantSteps, register_quantized
 from .config import CompressConfig
 from .mirror import Plane
@@ -32,7 +34,8 @@ def write_archive(state: LevelState, meta: dict, codec: str = "lossless") -> byt
     """The archive of ``state`` in coding order, written by archive codec ``codec``."""
     planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
     stored, bits = state.stored.detach().to("cpu"), state.bits.cpu()
-    perm = coding_order(stored, bits)
+    cells = grid_cells(archive_codec(codec)["means"], stored.means.numpy())
+    perm = coding_order(stored, bits, cells)
     return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
 
 
@@ -102,7 +105,9 @@ def _canonical(state: LevelState) -> LevelState:
 
 def _undone(record: dict) -> dict:
     """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing."""
-    return {**record, "bytes_after": record["bytes_before"], "saved_bytes": 0, "cost_db": 0.0, "kept": False,
+    psnr_before = record["psnr_after"] + (record["cost_db"] or 0.0)
+    return {**record, "bytes_after": record["bytes_before"], "saved_bytes": 0, "psnr_after": psnr_before,
+            "cost_db": 0.0, "kept": False,
             "reason": "the archive quantised without pruning and SH reduction was smaller"}  # fmt: skip
 
 

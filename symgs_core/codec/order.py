@@ -8,23 +8,12 @@ rows changes the expanded scene only by a permutation (see ``hierarchy.expand``)
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..scene import GaussianScene
-
-MORTON_BITS = 21  # per axis: 3 x 21 bits fill a non-negative int64
-
-
-def _spread_bits(v: Tensor) -> Tensor:
-    """Insert two zero bits above each of the low 21 bits of ``v`` [N] int64 (bit k -> bit 3k)."""
-    v = v & 0x1FFFFF
-    v = (v | (v << 32)) & 0x1F00000000FFFF
-    v = (v | (v << 16)) & 0x1F0000FF0000FF
-    v = (v | (v << 8)) & 0x100F00F00F00F00F
-    v = (v | (v << 4)) & 0x10C30C30C30C30C3
-    v = (v | (v << 2)) & 0x1249249249249249
-    return v
+from .morton import AXIS_BITS, fits, interleave
 
 
 def morton_codes(points: Tensor) -> Tensor:
@@ -38,13 +27,17 @@ def morton_codes(points: Tensor) -> Tensor:
         raise ValueError("points must be finite to be ordered along a space-filling curve")
     lo = p.min(dim=0).values
     extent = (p.max(dim=0).values - lo).clamp_min(torch.finfo(torch.float64).tiny)
-    top = (1 << MORTON_BITS) - 1
+    top = (1 << AXIS_BITS) - 1
     q = ((p - lo) / extent * top).round().clamp(0, top).to(torch.int64)
-    return _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << 1) | (_spread_bits(q[:, 2]) << 2)
+    return torch.from_numpy(interleave(q.cpu().numpy())).to(points.device)
 
 
-def coding_order(stored: GaussianScene, bits: Tensor) -> Tensor:
+def coding_order(stored: GaussianScene, bits: Tensor, cells: np.ndarray | None = None) -> Tensor:
     """Permutation [|S|] int64 that groups equal rows of ``bits`` [|S|, L+1] and orders each group by Morton code.
+
+    ``cells`` [|S|, 3]: the grid cells a quantising position codec puts the stored set in (``fits`` the Morton
+    range); the Morton codes are then theirs, so positions rise along the curve of their own grid within each group,
+    as ``codec.morton`` codes them. Without, positions are placed on a 2^21 grid in their bounding box.
 
     Groups come in lexicographic order of their rows, level 0 first; ties keep their input order, so the result is
     deterministic. Apply it to the stored set and the bit rows together (``ArchiveContents.permuted``).
@@ -55,8 +48,20 @@ def coding_order(stored: GaussianScene, bits: Tensor) -> Tensor:
     levels = bits.shape[1]
     if levels > 62:
         raise ValueError(f"coding_order packs bit rows into int64 keys: at most 62 levels, got {levels}")
-    codes = morton_codes(stored.means)
+    if cells is not None and (cells.shape != (n, 3) or not fits(cells)):
+        raise ValueError(f"cells must be [{n}, 3] grid cells in 0..2^{AXIS_BITS} - 1")
+    codes = morton_codes(stored.means) if cells is None else torch.from_numpy(interleave(cells)).to(bits.device)
     weights = 1 << torch.arange(levels - 1, -1, -1, dtype=torch.int64, device=bits.device)
     groups = (bits.to(torch.int64) * weights).sum(dim=1).to(codes.device)
     by_curve = torch.argsort(codes, stable=True)
     return by_curve[torch.argsort(groups[by_curve], stable=True)]
+
+
+def grid_cells(position_codec: object, means: np.ndarray) -> np.ndarray | None:
+    """The cells [N, 3] a quantising position codec puts ``means`` [N, 3] float32 in, when they fit the Morton range;
+    None for other codecs (float32 positions keep the bounding-box curve)."""
+    cells = getattr(position_codec, "cells", None)
+    if cells is None:
+        return None
+    grid = cells(means)
+    return grid if fits(grid) else None

@@ -38,10 +38,8 @@ from .quantize import (
     _step,
     _symbols,
     band_slices,
-    join_parts,
-    split_parts,
 )
-from .section import EncodedSection, SectionKind
+from .section import EncodedSection, SectionKind, join_parts, split_parts
 
 MAX_PALETTE = 1 << 20
 FIT_ROWS = 1 << 16  # k-means fits a random subsample of at most this many rows, then assigns every row once

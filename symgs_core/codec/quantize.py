@@ -31,7 +31,8 @@ import numpy as np
 from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
-from .section import EncodedSection, SectionKind
+from .morton import decode_codes, deinterleave, encode_codes, fits, interleave
+from .section import EncodedSection, SectionKind, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
@@ -220,27 +221,6 @@ def _symbols(payload: bytes, n: int, c: int, codec: str) -> np.ndarray:
     return table
 
 
-def join_parts(parts: list[bytes]) -> bytes:
-    """One payload of several streams, each behind its u32 length (``split_parts`` reads it back)."""
-    return b"".join(len(p).to_bytes(4, "little") + p for p in parts)
-
-
-def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
-    """The ``count`` streams of a ``join_parts`` payload; ArchiveError unless they fill it exactly."""
-    parts, pos = [], 0
-    for i in range(count):
-        if pos + 4 > len(payload):
-            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
-        length = int.from_bytes(payload[pos : pos + 4], "little")
-        parts.append(payload[pos + 4 : pos + 4 + length])
-        if len(parts[-1]) != length:
-            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
-        pos += 4 + length
-    if pos != len(payload):
-        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
-    return parts
-
-
 @dataclass(frozen=True)
 class PositionCodec:
     """Positions [N, 3] on a cube grid of ``step`` world units from the bounding box's low corner, or on the grid all
@@ -250,15 +230,29 @@ class PositionCodec:
     name: str = field(default="q-pos", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         x = _finite(values, self.name)
         step, origin = _position_grid(values, self.step) or (self.step, x.min(axis=0) if len(x) else np.zeros(3))
-        q = _grid(x, origin, step, self.name)
-        params = {"origin": [float(o) for o in origin], "step": float(step)}
-        return EncodedSection(encode_table(q), _raw_length(values.shape), params)
+        return _grid(x, origin, step, self.name), np.asarray(origin, dtype=np.float64), float(step)
+
+    def cells(self, values: np.ndarray) -> np.ndarray:
+        """The grid cells [N, 3] int64 ``encode`` puts ``values`` [N, 3] in (``order.coding_order`` sorts by them)."""
+        return self._quantise(values)[0]
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q, origin, step = self._quantise(values)
+        payload, morton = encode_table(q), False
+        if fits(q):
+            gaps = encode_codes(interleave(q))
+            payload, morton = (gaps, True) if len(gaps) < len(payload) else (payload, False)
+        params = {"origin": [float(o) for o in origin], "step": step, "morton": morton}
+        return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"origin", "step"}, self.name)
+        # Archives written before Morton gap coding carry no "morton" flag: their positions are a table.
+        _keys(params, {"origin", "step", "morton"} if "morton" in params else {"origin", "step"}, self.name)
+        if "morton" in params:
+            _flag(params, "morton", self.name)
         _step(params, self.name)
         origin = params["origin"]
         if not isinstance(origin, list) or len(origin) != 3:
@@ -268,7 +262,10 @@ class PositionCodec:
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        q = _symbols(payload, shape[0], 3, self.name)
+        if params.get("morton"):
+            q = deinterleave(decode_codes(payload, shape[0], self.name))
+        else:
+            q = _symbols(payload, shape[0], 3, self.name)
         return (np.asarray(params["origin"]) + q * params["step"]).astype(np.float32)
 
 

@@ -87,3 +87,24 @@ def check_params(codec: str, params: dict[str, Any], allowed: dict[str, tuple[ob
         # bool is an int in Python and 1 == True: compare types too so a parameter keeps its JSON type.
         if not any(type(value) is type(v) and value == v for v in values):
             raise ArchiveError("bad_header", f"{codec}: parameter {key}={value!r}, expected one of {list(values)}")
+
+
+def join_parts(parts: list[bytes]) -> bytes:
+    """One payload of several streams, each behind its u32 length (``split_parts`` reads it back)."""
+    return b"".join(len(p).to_bytes(4, "little") + p for p in parts)
+
+
+def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
+    """The ``count`` streams of a ``join_parts`` payload; ArchiveError unless they fill it exactly."""
+    parts, pos = [], 0
+    for i in range(count):
+        if pos + 4 > len(payload):
+            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
+        length = int.from_bytes(payload[pos : pos + 4], "little")
+        parts.append(payload[pos + 4 : pos + 4 + length])
+        if len(parts[-1]) != length:
+            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
+        pos += 4 + length
+    if pos != len(payload):
+        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
+    return parts

@@ -1,0 +1,131 @@
+"""Grid positions as the gaps between their sorted Morton codes, the sorted order's information not paid twice.
+
+A set of N points coded one difference per axis pays for the order of the points as well as for their places: about
+log2(N!) bits that sorting by Morton code makes free. Sorted codes are coded here as gaps: each gap's bit length
+(its class) entropy coded, the bits below its leading one stored as they are (they are close to uniform; modelling
+the two leading ones gained under 0.1 bit). Measured at the fitted position steps of the real captures: 18.5 bits
+per Gaussian against 22.4 for per-axis differences on the plant, 21.6 against 25.1 on the tarot box, 21.8 against
+25.4 on playbot 125k; on the fox, whose points sit on a coarse grid, differences stay smaller (``PositionCodec``
+keeps the smaller of the two).
+
+The stored set is sorted by level group first (``order.coding_order``), so the codes rise in runs; each run's first
+code is stored whole.
+
+    payload   u32 length + table of classes [N, 1] (0: gap 0, b: gap in [2^(b-1), 2^b), RUN: a run's first code),
+              then u32 length + (varint R, R little-endian int64: each run's first code),
+              then per class b = 2..63 present: u32 length + its gaps' low b-1 bits, packed most significant first
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .entropy import decode_table, encode_table
+from .errors import ArchiveError
+from .masks import read_varints, write_varints
+from .section import join_parts, split_parts
+
+AXIS_BITS = 21  # 3 x 21 bits fill a non-negative int64
+RUN = 64  # class of a run's first code
+
+
+def _spread(v: np.ndarray) -> np.ndarray:
+    """Each of the low 21 bits of ``v`` (int64) moved to bit 3k."""
+    v = v.astype(np.int64) & 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    return (v | (v << 2)) & 0x1249249249249249
+
+
+def _compact(v: np.ndarray) -> np.ndarray:
+    """Inverse of ``_spread``: bits 3k of ``v`` gathered into the low 21 bits."""
+    v = v & 0x1249249249249249
+    v = (v | (v >> 2)) & 0x10C30C30C30C30C3
+    v = (v | (v >> 4)) & 0x100F00F00F00F00F
+    v = (v | (v >> 8)) & 0x1F0000FF0000FF
+    v = (v | (v >> 16)) & 0x1F00000000FFFF
+    return (v | (v >> 32)) & 0x1FFFFF
+
+
+def interleave(cells: np.ndarray) -> np.ndarray:
+    """Morton codes [N] int64 of grid cells [N, 3] (each coordinate in 0 .. 2^21 - 1)."""
+    return _spread(cells[:, 0]) | (_spread(cells[:, 1]) << 1) | (_spread(cells[:, 2]) << 2)
+
+
+def deinterleave(codes: np.ndarray) -> np.ndarray:
+    """Grid cells [N, 3] int64 of Morton codes [N]."""
+    return np.stack([_compact(codes), _compact(codes >> 1), _compact(codes >> 2)], axis=1)
+
+
+def fits(cells: np.ndarray) -> bool:
+    """Whether ``cells`` [N, 3] lie in the range ``interleave`` takes."""
+    return not cells.size or (int(cells.min()) >= 0 and int(cells.max()) < 1 << AXIS_BITS)
+
+
+def _classes(gaps: np.ndarray) -> np.ndarray:
+    """Bit length of each non-negative gap (0 for 0)."""
+    out = np.zeros(len(gaps), dtype=np.int64)
+    nonzero = gaps > 0
+    out[nonzero] = np.floor(np.log2(gaps[nonzero].astype(np.float64))).astype(np.int64) + 1
+    # float64 rounds gaps near 2^53 and beyond: settle each length exactly
+    out[nonzero] += (gaps[nonzero] >> out[nonzero]) > 0
+    out[nonzero] -= (gaps[nonzero] >> (out[nonzero] - 1)) == 0
+    return out
+
+
+def encode_codes(codes: np.ndarray) -> bytes:
+    """The stream of Morton codes [N] int64 (>= 0), in their order; compact when they rise in few runs."""
+    codes = codes.astype(np.int64)
+    n = len(codes)
+    gaps = np.diff(codes, prepend=np.int64(0))
+    starts = np.ones(n, dtype=bool)
+    starts[1:] = gaps[1:] < 0
+    classes = _classes(np.where(starts, 0, gaps))
+    classes[starts] = RUN
+    parts = [write_varints(np.array([starts.sum()])) + codes[starts].astype("<i8").tobytes()]
+    for width in range(2, 64):
+        chosen = classes == width
+        if chosen.any():
+            low = (gaps[chosen] - (np.int64(1) << (width - 1))).astype(np.uint64)
+            shifts = np.arange(width - 2, -1, -1, dtype=np.uint64)
+            parts.append(np.packbits(((low[:, None] >> shifts) & 1).astype(np.uint8)).tobytes())
+    return join_parts([encode_table(classes[:, None])]) + join_parts(parts)
+
+
+def decode_codes(payload: bytes, n: int, what: str) -> np.ndarray:
+    """Inverse of ``encode_codes`` for ``n`` codes; ArchiveError if the stream does not hold exactly that."""
+    if len(payload) < 4 or 4 + int.from_bytes(payload[:4], "little") > len(payload):
+        raise ArchiveError("corrupt_section", f"{what}: the Morton gap classes are cut short")
+    split = 4 + int.from_bytes(payload[:4], "little")
+    classes = decode_table(payload[4:split], n, 1, what)[:, 0]
+    if n and (classes.min() < 0 or classes.max() > RUN):
+        raise ArchiveError("corrupt_section", f"{what}: a Morton gap class lies outside 0..{RUN}")
+    widths = [w for w in range(2, 64) if (classes == w).any()]
+    parts = split_parts(payload[split:], 1 + len(widths), what)
+    buf = np.frombuffer(parts[0], dtype=np.uint8)
+    (runs,), pos = read_varints(buf, 0, 1)
+    starts = classes == RUN
+    if int(runs) != int(starts.sum()) or (n and not starts[0]):
+        raise ArchiveError("corrupt_section", f"{what}: {runs} runs stored, {int(starts.sum())} marked")
+    if len(buf) - pos != 8 * int(runs):
+        raise ArchiveError("corrupt_section", f"{what}: {len(buf) - pos} bytes for the first codes of {runs} runs")
+    firsts = buf[pos:].view("<i8")
+    gaps = np.where(classes > 0, np.int64(1) << np.clip(classes - 1, 0, 62), 0).astype(np.int64)
+    gaps[starts] = 0
+    for width, part in zip(widths, parts[1:]):
+        chosen = np.flatnonzero(classes == width)
+        bits = np.unpackbits(np.frombuffer(part, dtype=np.uint8))
+        if len(part) != (len(chosen) * (width - 1) + 7) // 8:
+            raise ArchiveError("corrupt_section", f"{what}: {len(part)} bytes of {width - 1}-bit gap tails")
+        weights = np.uint64(1) << np.arange(width - 2, -1, -1, dtype=np.uint64)
+        tails = bits[: len(chosen) * (width - 1)].reshape(len(chosen), width - 1).astype(np.uint64) @ weights
+        gaps[chosen] += tails.astype(np.int64)
+    total = np.cumsum(gaps)
+    first = firsts.astype(np.int64)
+    run_of = np.cumsum(starts) - 1
+    codes = total + (first - total[starts])[run_of]
+    if n and (codes.min() < 0 or codes.max() >= 1 << (3 * AXIS_BITS)):
+        raise ArchiveError("corrupt_section", f"{what}: a Morton code lies outside 0..2^63")
+    return codes
