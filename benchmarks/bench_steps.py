@@ -1,7 +1,8 @@
 """Quantisation alone: one common factor on the preset's steps against the fitted steps, and the SH palette's section.
 
 For each scene and floor (PSNR against renders of the input from held-out cameras, as ``symgs bench`` measures), no
-mirrors, pruning or SH reduction: ``budget.fit_quantization`` from ``QuantSteps()`` (one factor for every step), then
+mirrors, pruning or SH reduction; rotations in their canonical frames (``codec.frames``), as the pipeline quantises
+them: ``budget.fit_quantization`` from ``QuantSteps()`` (one factor for every step), then
 ``budget.fit_steps`` (balanced steps, common factor, one attribute at a time, SH per coefficient or as a palette).
 Prints each archive's bytes, held-out PSNR and bytes per section. ``--palette-sizes`` also codes each scene's higher
 SH bands alone, per coefficient and as palettes of those sizes, on the same steps, with the RMS error of each.
@@ -25,6 +26,7 @@ import torch  # noqa: E402
 
 from symgs_core.budget import extent_of, fit_quantization, fit_steps  # noqa: E402
 from symgs_core.codec import read_header  # noqa: E402
+from symgs_core.codec.frames import canonical_frames  # noqa: E402
 from symgs_core.codec.palette import ShPaletteCodec  # noqa: E402
 from symgs_core.codec.quantize import ShRestCodec  # noqa: E402
 from symgs_core.codec.steps import QuantSteps, register_quantized  # noqa: E402
@@ -72,7 +74,7 @@ def main() -> None:
         scene = load_scene(path)
         views = self_supervised_views(scene, args.train_views, args.eval_views, args.resolution, torch.zeros(3))
         test = [views.test[i] for i in range(len(views.test))]
-        state = LevelState.plain(scene)
+        state = LevelState.plain(canonical_frames(scene))
         print(f"{path.name}: {len(scene):,} Gaussians, SH degree {scene.sh_degree}, floor {floor:.2f} dB")
         t0 = time.perf_counter()
         common = fit_quantization(state, test, views.background, floor=floor, start=QuantSteps(),
