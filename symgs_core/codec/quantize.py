@@ -1,13 +1,16 @@
 """Quantising section codecs: each attribute on a uniform grid, the integer symbols entropy coded (``entropy``).
 
 A codec carries its step; the step, and whatever else decoding needs, is written into the section's ``params``, so
-one reader decodes every step a writer chose. The stored set arrives in ``coding_order`` (Morton order inside each
-level group), which is what makes position differences small.
+one reader decodes every step a writer chose. The stored set arrives in ``coding_order`` (Morton order of the position
+codec's own grid inside each level group), which is what makes position gaps and differences small.
 
     positions   q = round((x - origin) / step), one step for all three axes (a cube grid in the bounding box); axes
-                all on one grid (.spz decodes) use it, origins fitted so the float32 values decode bit for bit
+                all on one grid (.spz decodes) use it, origins fitted so the float32 values decode bit for bit;
+                stored as the gaps between their Morton codes (``morton``) or as a table, whichever is smaller
     rotations   smallest three: normalise, flip the sign so the largest component is positive, store its index and
                 the other three on a grid of ``step`` in [-1/sqrt2, 1/sqrt2]; decoding restores a unit quaternion
+                (the pipeline first turns each rotation into its frame closest to the identity, ``frames``, so the
+                index is always w and the three span half the range)
     log-scales  q = round((s - origin) / step)
     opacity     quantised as alpha = sigmoid(logit) (what the renderer blends); alpha 0 decodes to the lowest logit
                 the PLY reader keeps, which the renderer skips (alpha < 1/255)
