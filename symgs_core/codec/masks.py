@@ -68,6 +68,22 @@ def read_varints(buf: np.ndarray, pos: int, count: int) -> tuple[np.ndarray, int
     return values, pos + int(ends[-1]) + 1
 
 
+def pack_uint(values: np.ndarray, width: int) -> bytes:
+    """Non-negative integers [N] below 2^width (width < 64) as N fields of ``width`` bits, most significant first,
+    the last byte padded with zeros."""
+    shifts = np.arange(width - 1, -1, -1, dtype=np.uint64)
+    return np.packbits(((values.astype(np.uint64)[:, None] >> shifts) & 1).astype(np.uint8)).tobytes()
+
+
+def unpack_uint(data: bytes, count: int, width: int, what: str) -> np.ndarray:
+    """Inverse of ``pack_uint``: ``count`` int64 values; ArchiveError unless ``data`` is exactly their bytes."""
+    if len(data) != (count * width + 7) // 8:
+        raise ArchiveError("corrupt_section", f"{what}: {len(data)} bytes for {count} fields of {width} bits")
+    bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8))[: count * width].reshape(count, width)
+    weights = np.uint64(1) << np.arange(width - 1, -1, -1, dtype=np.uint64)
+    return (bits.astype(np.uint64) @ weights).astype(np.int64)
+
+
 def column_runs(column: np.ndarray) -> np.ndarray:
     """Run lengths [R] of a bool column [N], alternating false/true from a false run (0 if it starts true)."""
     n = len(column)

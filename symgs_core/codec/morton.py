@@ -22,7 +22,7 @@ import numpy as np
 
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
-from .masks import read_varints, write_varints
+from .masks import pack_uint, read_varints, unpack_uint, write_varints
 from .section import join_parts, split_parts
 
 AXIS_BITS = 21  # 3 x 21 bits fill a non-negative int64
@@ -88,9 +88,7 @@ def encode_codes(codes: np.ndarray) -> bytes:
     for width in range(2, 64):
         chosen = classes == width
         if chosen.any():
-            low = (gaps[chosen] - (np.int64(1) << (width - 1))).astype(np.uint64)
-            shifts = np.arange(width - 2, -1, -1, dtype=np.uint64)
-            parts.append(np.packbits(((low[:, None] >> shifts) & 1).astype(np.uint8)).tobytes())
+            parts.append(pack_uint(gaps[chosen] - (np.int64(1) << (width - 1)), width - 1))
     return join_parts([encode_table(classes[:, None])]) + join_parts(parts)
 
 
@@ -116,12 +114,7 @@ def decode_codes(payload: bytes, n: int, what: str) -> np.ndarray:
     gaps[starts] = 0
     for width, part in zip(widths, parts[1:]):
         chosen = np.flatnonzero(classes == width)
-        bits = np.unpackbits(np.frombuffer(part, dtype=np.uint8))
-        if len(part) != (len(chosen) * (width - 1) + 7) // 8:
-            raise ArchiveError("corrupt_section", f"{what}: {len(part)} bytes of {width - 1}-bit gap tails")
-        weights = np.uint64(1) << np.arange(width - 2, -1, -1, dtype=np.uint64)
-        tails = bits[: len(chosen) * (width - 1)].reshape(len(chosen), width - 1).astype(np.uint64) @ weights
-        gaps[chosen] += tails.astype(np.int64)
+        gaps[chosen] += unpack_uint(part, len(chosen), width - 1, what)
     total = np.cumsum(gaps)
     first = firsts.astype(np.int64)
     run_of = np.cumsum(starts) - 1

@@ -82,7 +82,7 @@ def test_a_palette_of_one_entry_and_a_scene_without_higher_bands() -> None:
     assert params["size"] == 1 and (out == 0).all()
     empty = np.zeros((50, 0, 3), dtype=np.float32)
     out, params = _roundtrip(ShPaletteCodec(256, ()), empty)
-    assert out.shape == (50, 0, 3) and params == {"size": 1, "steps": [], "decorrelate": []}
+    assert out.shape == (50, 0, 3) and params == {"size": 1, "steps": [], "decorrelate": [], "order": "use"}
 
 
 @pytest.mark.parametrize("degree", [0, 2])
@@ -140,3 +140,69 @@ def test_hostile_palette_sections_are_archive_errors() -> None:
         assert code(coded.payload, bad) == "bad_header", bad
     with pytest.raises(ArchiveError, match="raw length"):
         codec.check(shape, params, raw + 4)
+
+
+def _sog_like(n: int, entries: int, seed: int) -> np.ndarray:
+    """Rows drawn from a palette where most entries serve one or two rows, as in scenes decoded from SOG."""
+    rng = np.random.default_rng(seed)
+    palette = np.round(rng.normal(size=(entries, 3, 3)) * 10.0) / 40.0  # on the 0.025 grid: exact at STEPS x 2.5
+    values = palette[rng.integers(0, entries, n)].astype(np.float32)
+    values[::11] = 0.0
+    return values
+
+
+def test_palettes_of_rarely_shared_entries_are_numbered_by_first_use() -> None:
+    values = _sog_like(6000, 4000, seed=21)
+    codec = ShPaletteCodec(1 << 14, (0.025,))
+    coded = codec.encode(values)
+    assert coded.params["order"] == "first"
+    out = codec.decode(coded.payload, values.shape, coded.params, coded.raw_length)
+    assert np.abs(out - values).max() <= 1e-6 and (out[::11] == 0).all()
+    # Against the same entries ordered by use, with an entropy-coded index: the index part alone shrinks by a third.
+    index = np.unique(values.reshape(len(values), -1), axis=0, return_inverse=True)[1].reshape(-1)
+    by_use_index = len(encode_table(index[:, None]))
+    first_use_index = int.from_bytes(coded.payload[:4], "little")  # the first part: the index stream
+    assert first_use_index < 0.67 * by_use_index
+
+
+def test_palettes_of_widely_shared_entries_keep_the_order_by_use() -> None:
+    values = _clustered(6000, 3, centres=50, noise=0.0, seed=22)
+    coded = ShPaletteCodec(64, STEPS).encode(values)
+    assert coded.params["order"] == "use"
+
+
+def test_archives_without_an_entry_order_still_decode() -> None:
+    values = _clustered(6000, 3, centres=30, noise=0.0, seed=23)
+    codec = ShPaletteCodec(64, STEPS)
+    coded = codec.encode(values)
+    assert coded.params["order"] == "use"
+    legacy = {key: value for key, value in coded.params.items() if key != "order"}
+    codec.check(values.shape, legacy, coded.raw_length)
+    assert np.array_equal(codec.decode(coded.payload, values.shape, legacy, coded.raw_length),
+                          codec.decode(coded.payload, values.shape, coded.params, coded.raw_length))  # fmt: skip
+    with pytest.raises(ArchiveError, match="order"):
+        codec.check(values.shape, {**coded.params, "order": "random"}, coded.raw_length)
+
+
+def test_hostile_first_use_streams_are_refused() -> None:
+    values = _sog_like(800, 600, seed=24)
+    codec = ShPaletteCodec(1 << 12, (0.025,))
+    coded = codec.encode(values)
+    assert coded.params["order"] == "first"
+    payload = coded.payload
+    index_length = 4 + int.from_bytes(payload[:4], "little")
+    for bad in (payload[: index_length - 1], payload[:index_length] + b"\xff" + payload[index_length:]):
+        with pytest.raises(ArchiveError):
+            codec.decode(bad, values.shape, coded.params, coded.raw_length)
+    for size in (coded.params["size"] - 1, coded.params["size"] + 1):
+        with pytest.raises(ArchiveError):
+            codec.decode(payload, values.shape, {**coded.params, "size": size}, coded.raw_length)
+    rng = np.random.default_rng(25)
+    for _ in range(200):  # flipped bytes: refused, or a palette index within range
+        flipped = bytearray(payload)
+        flipped[rng.integers(0, len(flipped))] ^= 1 << int(rng.integers(0, 8))
+        try:
+            out = codec.decode(bytes(flipped), values.shape, coded.params, coded.raw_length)
+        except ArchiveError:
+            continue
+        assert out.shape == values.shape
