@@ -1,8 +1,10 @@
 """Decoding speed: a 1,000,000-Gaussian quantised archive to a graphdeco `.ply`, as `symgs decompress` does it.
 
 The scene is eight side-by-side copies of the real playbot capture (125k Gaussians, SH degree 2) when the shared
-data is present, else a generated scene of the same size and degree. Prints the median of ``--repeats`` runs of
-decode (archive -> scene) and write (scene -> PLY bytes), wall and process CPU seconds.
+data is present, else a generated scene of the same size and degree, written as the pipeline writes it: rotations in
+their canonical frames, positions along their grid's Morton curve, the higher SH bands as a palette of every distinct
+row. Prints the median of ``--repeats`` runs of decode (archive -> scene) and write (scene -> PLY bytes), wall and
+process CPU seconds.
 
     .venv/bin/python benchmarks/bench_decode.py --threads 2
 """
@@ -12,14 +14,19 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from symgs_core.codec import ArchiveContents, QuantSteps, coding_order, encode_archive, register_quantized
+from symgs_core.budget import palette_start
+from symgs_core.codec import QuantSteps, register_quantized
+from symgs_core.codec.frames import canonical_frames
 from symgs_core.export import ply_bytes
+from symgs_core.optimize import LevelState
 from symgs_core.pipeline import decompress
 from symgs_core.scene import GaussianScene
+from symgs_core.stages import write_archive
 
 PLAYBOT = Path(__file__).resolve().parents[1].parent / "shared/data/playbot_cc_by_sa3d/playbot_lod2_125k_sh2.ply"
 
@@ -46,9 +53,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     scene, what = million()
     extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
-    codec = register_quantized("bench-decode", QuantSteps().scaled(args.factor), extent)
-    bits = torch.zeros(len(scene), 0, dtype=torch.bool)
-    data = encode_archive(ArchiveContents(scene.select(coding_order(scene, bits)), [], bits, {}), codec=codec)
+    steps = replace(QuantSteps().scaled(args.factor), sh_palette=palette_start(scene.sh_rest))
+    codec = register_quantized("bench-decode", steps, extent)
+    data = write_archive(LevelState.plain(canonical_frames(scene)), {}, codec)
     timings: dict[str, list[float]] = {"decode": [], "write": [], "total": [], "cpu": []}
     for _ in range(args.repeats):
         t0, c0 = time.perf_counter(), time.process_time()
