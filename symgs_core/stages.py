@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from torch import Tensor
@@ -19,12 +19,13 @@ from .budget import SHARES, archive_bytes, extent_of, fit_steps, split_budget
 from .codec import ArchiveContents, coding_order, encode_archive
 from .codec.frames import canonical_frames
 from .codec.order import grid_cells
+from .codec.palette import RowWeights
 from .codec.registry import archive_codec
 from .codec.steps import QuantSteps, register_quantized
 from .config import CompressConfig
 from .mirror import Plane
 from .optimize import LevelState, evaluate
-from .prune import prune, reduce_sh
+from .prune import contributions, prune, reduce_sh
 
 # Starting steps of each preset; the search then scales them to spend the preset's budget.
 PRESET_STEPS = {"small": QuantSteps().scaled(2.0), "balanced": QuantSteps(), "high": QuantSteps().scaled(0.5)}
@@ -103,6 +104,14 @@ def _canonical(state: LevelState) -> LevelState:
     return LevelState(canonical_frames(state.stored.detach()), state.normals, state.offsets, state.bits)
 
 
+def _weighted(start: QuantSteps, state: LevelState, train: list) -> QuantSteps:
+    """``start`` with the render weight of each SH row of ``state`` over the training views, for the SH palette."""
+    if not state.stored.sh_degree:
+        return start
+    weights = contributions(state, [camera for camera, _ in train]).numpy()
+    return replace(start, sh_weights=RowWeights.of(state.stored.sh_rest.detach().cpu().numpy(), weights))
+
+
 def _undone(record: dict) -> dict:
     """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing."""
     psnr_before = record["psnr_after"] + (record["cost_db"] or 0.0)
@@ -160,9 +169,10 @@ def reduce_and_encode(
 
     t0 = time.perf_counter()
     report("encode", 0.3, "fitting quantisation steps")
-    start, quantization_floor = PRESET_STEPS[config.preset], floors["quantization"]
+    quantization_floor = floors["quantization"]
     reduced, exact = state is not mirrored, state
     state = _canonical(state)
+    start = _weighted(PRESET_STEPS[config.preset], state, train)
     fit = fit_steps(state, test, background, floor=quantization_floor, start=start, psnr_before=psnr)
     if reduced:
         # Pruning and SH reduction spend budget the quantiser could have spent: they stay only if the archive with
@@ -170,7 +180,8 @@ def reduce_and_encode(
         # of the error budget and the archive came out larger).
         report("encode", 0.6, "fitting quantisation steps without pruning and SH reduction, to compare")
         direct = _canonical(mirrored)
-        direct_fit = fit_steps(direct, test, background, floor=quantization_floor, start=start,
+        direct_fit = fit_steps(direct, test, background, floor=quantization_floor,
+                               start=_weighted(PRESET_STEPS[config.preset], direct, train),
                                psnr_before=mirrored_psnr)  # fmt: skip
         if direct_fit is not None and (
             fit is None or archive_bytes(direct.stored, direct_fit.steps) < archive_bytes(state.stored, fit.steps)
@@ -194,5 +205,7 @@ def reduce_and_encode(
                          codec=codec))  # fmt: skip
     quantization = {"steps": fit.steps.as_dict(), "factor": fit.factor, "floor": floors["quantization"],
                     "floors": floors, "shares": SHARES, "probe_errors": fit.probe_errors}  # fmt: skip
-    baseline = write_archive(_canonical(source_state), meta, codec)
+    plain_codec = register_quantized(f"{config.preset}-baseline", replace(fit.steps, sh_weights=None), extent_of(
+        source_state.stored))  # fmt: skip
+    baseline = write_archive(_canonical(source_state), meta, plain_codec)
     return Coded(state, archive, baseline, codec, stages, quantization)

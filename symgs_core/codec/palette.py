@@ -30,17 +30,17 @@ from .masks import pack_uint, unpack_uint
 from .quantize import (
     _check_raw,
     _correlate,
+    _decorrelate,
     _finite,
     _flag,
     _grid,
     _keys,
     _raw_length,
-    _smaller,
     _step,
     _symbols,
     band_slices,
 )
-from .section import EncodedSection, SectionKind, join_parts, split_parts
+from .section import EncodedSection, SectionKind, join_parts, split_all, split_parts
 
 MAX_PALETTE = 1 << 20
 FIT_ROWS = 1 << 16  # k-means fits a random subsample of at most this many rows, then assigns every row once
@@ -231,15 +231,73 @@ def _decode_first_use(payload: bytes, n: int, size: int, what: str) -> np.ndarra
     return index
 
 
+MAX_CLASS = 3  # an entry's step is the band's step times 2^class, class 0..MAX_CLASS
+CLASS_OFFSET = 0.0  # fitted archives on playbot 31k: 383.5 kB at offset 0, 385.9 at 0.25, 393 at 0.5 and at -0.5
+
+
+def entry_classes(weights: np.ndarray) -> np.ndarray:
+    """Step class [E] of palette entries of render weights [E]: the step that spends equal error per unit of weight
+    grows as weight^-1/2, in powers of two from the mean entry's (class 0 at and above it)."""
+    mean = float(weights.mean()) if len(weights) else 0.0
+    if mean <= 0:
+        return np.zeros(len(weights), dtype=np.int64)
+    ratio = mean / np.maximum(weights, mean * 4.0**-MAX_CLASS)
+    return np.clip(np.round(0.5 * np.log2(ratio) + CLASS_OFFSET), 0, MAX_CLASS).astype(np.int64)
+
+
+def _band_tables(symbols: np.ndarray, classes: np.ndarray, mixed: bool) -> list[bytes]:
+    """One table per class present (ascending) of a band's entry symbols [E, width, 3], channels decorrelated."""
+    symbols = _decorrelate(symbols) if mixed else symbols
+    width = symbols.shape[1] * 3
+    return [encode_table(symbols[classes == c].reshape(-1, width)) for c in np.unique(classes)]
+
+
+@dataclass(frozen=True)
+class RowWeights:
+    """Render weight of each distinct SH row of a stored set (summed over the Gaussians that hold it), looked up by
+    the row's bytes, so a codec finds the weight of rows in any order."""
+
+    keys: np.ndarray  # [M] sorted void keys of float32 rows
+    weights: np.ndarray  # [M]
+
+    @staticmethod
+    def of(sh_rest: np.ndarray, weights: np.ndarray) -> RowWeights:
+        """From ``sh_rest`` [N, K, 3] float32 and each Gaussian's weight [N]."""
+        keys = _row_keys(sh_rest.reshape(len(sh_rest), -1))
+        unique, inverse = np.unique(keys, return_inverse=True)
+        return RowWeights(unique, np.bincount(inverse.reshape(-1), weights=weights, minlength=len(unique)))
+
+    def lookup(self, rows: np.ndarray) -> np.ndarray:
+        """Weight [R] of each row [R, D] (float32 or float64 holding float32 values); 0 for rows not seen."""
+        keys = _row_keys(rows.astype(np.float32))
+        at = np.clip(np.searchsorted(self.keys, keys), 0, max(len(self.keys) - 1, 0))
+        found = (self.keys[at] == keys) if len(self.keys) else np.zeros(len(keys), dtype=bool)
+        return np.where(found, self.weights[at] if len(self.keys) else 0.0, 0.0)
+
+
+    def per_row(self, rows: np.ndarray) -> np.ndarray:
+        """Each row's [R] share of its weight: a row that ``rows`` holds m times gets 1/m of it each time."""
+        _, inverse, counts = np.unique(_row_keys(rows.astype(np.float32)), return_inverse=True, return_counts=True)
+        return self.lookup(rows) / counts[inverse.reshape(-1)]
+
+
+def _row_keys(rows: np.ndarray) -> np.ndarray:
+    rows = np.ascontiguousarray(rows + np.float32(0.0))  # -0.0 becomes 0.0, as in ``fit_palette``
+    return rows.view(np.dtype((np.void, rows.shape[1] * rows.itemsize)))[:, 0]
+
+
 @dataclass(frozen=True)
 class ShPaletteCodec:
     """Higher SH [N, K, 3] as a palette of at most ``size`` vectors (the zero vector first) and an index per row.
 
     ``steps`` lists the grid step of band 1, 2, 3 for the palette's entries; a scene of lower degree uses the first.
+    ``weights``: the render weight of the rows; entries that little of the image depends on then take coarser steps
+    (``entry_classes``), their class stored once per entry.
     """
 
     size: int
     steps: tuple[float, ...]
+    weights: RowWeights | None = field(default=None, compare=False, repr=False)
     name: str = field(default="vq-sh", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
@@ -259,12 +317,23 @@ class ShPaletteCodec:
             nonzero = np.flatnonzero(x.any(axis=1))
             entries, labels = _cached_fit(values.reshape(n, 3 * k)[nonzero], self.size - 1)
             index[nonzero] = labels + 1
-        palette = np.concatenate([np.zeros((1, k, 3)), entries.reshape(len(entries), k, 3).astype(np.float64)])
-        bands = [_grid(palette[:, s, :], 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
-        q = np.concatenate([np.zeros((len(palette), 0, 3), dtype=np.int64), *bands], axis=1).reshape(len(palette), -1)
-        # Entries that land on one grid point become one; the zero entry leads, the others by decreasing use.
+        palette = entries.reshape(len(entries), k, 3).astype(np.float64)
+        classes = np.zeros(len(palette), dtype=np.int64)
+        if self.weights is not None and len(palette):
+            classes = entry_classes(np.bincount(index, weights=self.weights.per_row(x), minlength=len(palette) + 1)[1:])
+        # Symbols in units of each band's step; an entry of class c lies on multiples of 2^c of them.
+        scale = (2.0 ** classes)[:, None, None]
+        bands = [_grid(palette[:, s, :] / scale, 0.0, st, self.name) << classes[:, None, None]
+                 for s, st in zip(band_slices(degree), self.steps)]  # fmt: skip
+        q = np.concatenate([np.zeros((len(palette), 0, 3), dtype=np.int64), *bands], axis=1)
+        q = q.reshape(len(palette), 3 * k)
+        q = np.concatenate([np.zeros((1, q.shape[1]), dtype=np.int64), q])
+        classes = np.concatenate([[0], classes])
+        # Entries that land on one grid point become one, of the finest class among them; the zero entry leads.
         points, merged = np.unique(q, axis=0, return_inverse=True)
         merged = merged.reshape(-1)
+        point_class = np.full(len(points), MAX_CLASS, dtype=np.int64)
+        np.minimum.at(point_class, merged, classes)
         index = merged[index]
         uses = np.bincount(index, minlength=len(points)).astype(np.float64)
         uses[merged[0]] = np.inf
@@ -274,25 +343,32 @@ class ShPaletteCodec:
         np.minimum.at(first, index, np.arange(len(index)))
         first[merged[0]] = -1
         by_first = np.argsort(first, kind="stable")[: len(by_use)]
+        with_classes = bool(point_class[by_use[1:]].any())
         codings = []
         for name, order in (("use", by_use), ("first", by_first)):
             rank = np.empty(len(points), dtype=np.int64)
             rank[order] = np.arange(len(order))
             indices = encode_table(rank[index][:, None]) if name == "use" else _encode_first_use(rank[index])
-            stored = points[order[1:]].reshape(len(order) - 1, k, 3)
-            parts, mixed = [indices], []
+            cls = point_class[order[1:]]
+            stored = (points[order[1:]] >> cls[:, None]).reshape(len(order) - 1, k, 3)
+            parts = [indices] + ([encode_table(cls[:, None])] if with_classes else [])
+            mixed = []
             for s in band_slices(degree):
-                coded, flag = _smaller(stored[:, s, :], (len(stored), 3 * (s.stop - s.start)))
-                parts.append(coded)
+                tables = [_band_tables(stored[:, s, :], cls, flag) for flag in (False, True)]
+                flag = sum(map(len, tables[1])) < sum(map(len, tables[0]))
+                parts += tables[flag]
                 mixed.append(flag)
             params = {"size": len(order), "steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
-            codings.append((join_parts(parts), {**params, "order": name}))
+            codings.append((join_parts(parts), {**params, "order": name, "classes": with_classes}))
         payload, params = min(codings, key=lambda c: len(c[0]))
         return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        # Archives written before the first-use order carry no "order": their entries are ordered by use.
-        _keys(params, {"size", "steps", "decorrelate"} | ({"order"} if "order" in params else set()), self.name)
+        # Archives written before the first-use order and the classes carry neither key: ordered by use, no classes.
+        later = {key for key in ("order", "classes") if key in params}
+        _keys(params, {"size", "steps", "decorrelate"} | later, self.name)
+        if "classes" in params:
+            _flag(params, "classes", self.name)
         if params.get("order", "use") not in ("use", "first"):
             raise ArchiveError("bad_header", f"{self.name}: entry order {params['order']!r:.40}, expected use or first")
         if len(shape) != 3 or shape[1] not in SH_DEGREES or shape[2] != 3:
@@ -311,17 +387,33 @@ class ShPaletteCodec:
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         n, k, _ = shape
         size, degree = params["size"], len(params["steps"])
-        parts = split_parts(payload, degree + 1, self.name)
+        parts = split_all(payload, self.name)
+        if not parts:
+            raise ArchiveError("corrupt_section", f"{self.name}: no palette index")
         if params.get("order", "use") == "first":
             index = _decode_first_use(parts[0], n, size, self.name)
         else:
             index = decode_table(parts[0], n, 1, self.name)[:, 0]
         if n and (index.min() < 0 or index.max() >= size):
             raise ArchiveError("corrupt_section", f"{self.name}: a palette index lies outside 0..{size - 1}")
+        cls = np.zeros(size - 1, dtype=np.int64)
+        if params.get("classes"):
+            if len(parts) < 2:
+                raise ArchiveError("corrupt_section", f"{self.name}: no entry classes")
+            cls = decode_table(parts[1], size - 1, 1, self.name)[:, 0]
+            if size > 1 and (cls.min() < 0 or cls.max() > MAX_CLASS):
+                raise ArchiveError("corrupt_section", f"{self.name}: an entry class lies outside 0..{MAX_CLASS}")
+        present = np.unique(cls)
+        tables = parts[2:] if params.get("classes") else parts[1:]
+        if len(tables) != degree * len(present):
+            raise ArchiveError("corrupt_section", f"{self.name}: {len(tables)} entry tables for {degree} bands")
         palette = np.zeros((size, k, 3), dtype=np.float32)
         for lvl, (rows, step) in enumerate(zip(band_slices(degree), params["steps"]), start=1):
             width = rows.stop - rows.start
-            q = _symbols(parts[lvl], size - 1, 3 * width, self.name).reshape(size - 1, width, 3)
-            q = _correlate(q) if params["decorrelate"][lvl - 1] else q
+            q = np.zeros((size - 1, width, 3), dtype=np.int64)
+            for part, c in zip(tables[(lvl - 1) * len(present) : lvl * len(present)], present):
+                chosen = cls == c
+                group = _symbols(part, int(chosen.sum()), 3 * width, self.name).reshape(-1, width, 3)
+                q[chosen] = (_correlate(group) if params["decorrelate"][lvl - 1] else group) << c
             palette[1:, rows, :] = q.astype(np.float32) * np.float32(step)
         return palette[index]

@@ -108,3 +108,17 @@ def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
     if pos != len(payload):
         raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
     return parts
+
+
+def split_all(payload: bytes, codec: str) -> list[bytes]:
+    """Every stream of a ``join_parts`` payload, however many; ArchiveError if the last one is cut short."""
+    parts, pos = [], 0
+    while pos < len(payload):
+        if pos + 4 > len(payload):
+            raise ArchiveError("corrupt_section", f"{codec}: payload ends inside a part's length")
+        length = int.from_bytes(payload[pos : pos + 4], "little")
+        if pos + 4 + length > len(payload):
+            raise ArchiveError("corrupt_section", f"{codec}: part {len(parts)} is cut short")
+        parts.append(payload[pos + 4 : pos + 4 + length])
+        pos += 4 + length
+    return parts

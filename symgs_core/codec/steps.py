@@ -10,10 +10,10 @@ the same, SH bands half. ``scaled(f)`` moves every step together; the pipeline s
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from .masks import MASKS
-from .palette import ShPaletteCodec
+from .palette import RowWeights, ShPaletteCodec
 from .quantize import OpacityCodec, PositionCodec, RotationCodec, ScalarGridCodec, ShDcCodec, ShRestCodec
 from .registry import register_archive_codec, register_section_codec
 from .section import SectionCodec
@@ -26,7 +26,9 @@ class QuantSteps:
     """Grid steps of each attribute at scale 1; ``position`` is a fraction of the bounding box's longest side.
 
     ``sh_palette``: 0 stores the higher SH bands per coefficient (``ShRestCodec``), else as a palette of at most this
-    many vectors and an index per Gaussian (``ShPaletteCodec``), the palette on the ``sh`` steps.
+    many vectors and an index per Gaussian (``ShPaletteCodec``), the palette on the ``sh`` steps; ``sh_weights``, the
+    render weight of the stored set's SH rows, lets the palette give entries the image depends on little coarser
+    steps (not a step of its own: carried along, never compared or reported).
     """
 
     position: float = 2.0**-16
@@ -36,6 +38,7 @@ class QuantSteps:
     dc: float = 1.0 / (128.0 * C0)
     sh: tuple[float, float, float] = (1.0 / 32.0, 1.0 / 32.0, 1.0 / 32.0)
     sh_palette: int = 0
+    sh_weights: RowWeights | None = field(default=None, compare=False, repr=False)
 
     def scaled(self, factor: float) -> QuantSteps:
         """Every step times ``factor`` (> 0); opacity stays within the unit interval; the palette size stays."""
@@ -59,7 +62,9 @@ class QuantSteps:
             "scales": ScalarGridCodec(self.scale),
             "opacities": OpacityCodec(self.opacity),
             "sh_dc": ShDcCodec(self.dc),
-            "sh_rest": ShPaletteCodec(self.sh_palette, self.sh) if self.sh_palette > 0 else ShRestCodec(self.sh),
+            "sh_rest": ShPaletteCodec(self.sh_palette, self.sh, self.sh_weights)
+            if self.sh_palette > 0
+            else ShRestCodec(self.sh),
             "bits": MASKS,
         }
 

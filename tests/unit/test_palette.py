@@ -82,7 +82,8 @@ def test_a_palette_of_one_entry_and_a_scene_without_higher_bands() -> None:
     assert params["size"] == 1 and (out == 0).all()
     empty = np.zeros((50, 0, 3), dtype=np.float32)
     out, params = _roundtrip(ShPaletteCodec(256, ()), empty)
-    assert out.shape == (50, 0, 3) and params == {"size": 1, "steps": [], "decorrelate": [], "order": "use"}
+    assert out.shape == (50, 0, 3)
+    assert params == {"size": 1, "steps": [], "decorrelate": [], "order": "use", "classes": False}
 
 
 @pytest.mark.parametrize("degree", [0, 2])
@@ -206,3 +207,72 @@ def test_hostile_first_use_streams_are_refused() -> None:
         except ArchiveError:
             continue
         assert out.shape == values.shape
+
+
+def test_entry_classes_follow_the_inverse_square_root_of_the_weight() -> None:
+    from symgs_core.codec.palette import MAX_CLASS, entry_classes
+
+    mean = 1.0
+    weights = np.array([4.0, 1.0, 0.25, 1.0 / 16, 1.0 / 64, 1e-9, 0.0]) * mean
+    weights = weights * (weights.size / weights.sum())  # rescaled so their mean is 1
+    classes = entry_classes(weights)
+    assert classes.tolist() == sorted(classes.tolist())  # lighter entries never get finer steps
+    assert classes[0] == 0 and classes[-1] == MAX_CLASS and classes[-2] == MAX_CLASS
+    ratio = 1.0 / weights[2:5]  # mean / weight
+    assert np.array_equal(classes[2:5], np.clip(np.round(0.5 * np.log2(ratio)), 0, MAX_CLASS))
+    assert not entry_classes(np.zeros(5)).any() and len(entry_classes(np.zeros(0))) == 0
+
+
+def test_row_weights_are_found_in_any_order_and_shared_among_repeats() -> None:
+    from symgs_core.codec.palette import RowWeights
+
+    rows = _sog_like(400, 100, seed=31)
+    weights = np.random.default_rng(32).random(400)
+    table = RowWeights.of(rows, weights)
+    flat = rows.reshape(400, -1)
+    perm = np.random.default_rng(33).permutation(400)
+    looked = table.lookup(flat[perm].astype(np.float64))
+    keys = [r.tobytes() for r in (flat + np.float32(0.0))]
+    expected = np.array([sum(w for k2, w in zip(keys, weights) if k2 == keys[i]) for i in perm])
+    assert np.allclose(looked, expected)
+    assert np.allclose(table.per_row(flat).sum(), weights.sum())
+    assert table.lookup(np.full((2, flat.shape[1]), 9.0)).tolist() == [0.0, 0.0]
+
+
+def test_weighted_palettes_give_light_entries_coarser_steps() -> None:
+    from symgs_core.codec.palette import RowWeights
+
+    rng = np.random.default_rng(34)
+    values = (rng.normal(size=(3000, 3, 3)) * 0.3).astype(np.float32)  # every row its own entry
+    weights = np.where(np.arange(3000) < 1500, 1.0, 1e-3)  # the second half barely seen
+    step = 0.01
+    plain = ShPaletteCodec(4096, (step,)).encode(values)
+    weighted_codec = ShPaletteCodec(4096, (step,), RowWeights.of(values, weights))
+    coded = weighted_codec.encode(values)
+    assert coded.params["classes"] is True and len(coded.payload) < 0.85 * len(plain.payload)  # measured 0.80
+    out = weighted_codec.decode(coded.payload, values.shape, coded.params, coded.raw_length)
+    error = np.abs(out - values).reshape(3000, -1).max(axis=1)
+    assert error[:1500].max() <= step / 2 + 1e-6  # heavy entries: class 0
+    assert error[1500:].max() <= step * 8 / 2 + 1e-6 and error[1500:].max() > step  # light ones: up to class 3
+    legacy = {key: value for key, value in plain.params.items() if key != "classes"}
+    assert np.array_equal(ShPaletteCodec(4096, (step,)).decode(plain.payload, values.shape, legacy, plain.raw_length),
+                          ShPaletteCodec(4096, (step,)).decode(plain.payload, values.shape, plain.params,
+                                                               plain.raw_length))  # fmt: skip
+
+
+def test_hostile_entry_classes_are_refused() -> None:
+    from symgs_core.codec.palette import RowWeights
+    from symgs_core.codec.section import join_parts, split_all
+
+    values = _sog_like(600, 500, seed=35)
+    weights = np.random.default_rng(36).random(600) ** 4
+    codec = ShPaletteCodec(1 << 12, (0.025,), RowWeights.of(values, weights))
+    coded = codec.encode(values)
+    assert coded.params["classes"] is True
+    parts = split_all(coded.payload, "t")
+    bad_classes = encode_table(np.full((coded.params["size"] - 1, 1), 9))
+    for payload in (join_parts(parts[:1] + [bad_classes] + parts[2:]), join_parts(parts[:-1])):
+        with pytest.raises(ArchiveError):
+            codec.decode(payload, values.shape, coded.params, coded.raw_length)
+    with pytest.raises(ArchiveError):
+        codec.check(values.shape, {**coded.params, "classes": "yes"}, coded.raw_length)
