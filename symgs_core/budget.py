@@ -228,8 +228,8 @@ def coarsen_one_by_one(
     *,
     floor: float,
     order: list[str],
-    max_tries: int = 10,
-    factors: tuple[float, ...] = (math.sqrt(2.0), 2.0**0.25),
+    max_tries: int = 16,
+    factors: tuple[float, ...] = (math.sqrt(2.0), 2.0**0.25, 2.0**0.125),
 ) -> QuantFit:
     """Spend what the common factor left of the budget: coarsen one attribute at a time, in ``order`` (the
     attributes most likely to pay first), keeping each change whose renders stay at or above ``floor``.
@@ -292,7 +292,11 @@ def fit_steps(
     fits = []
     variants = [(balanced.steps, balanced.order)]
     if state.stored.sh_degree:
-        palette = replace(balanced.steps, sh_palette=palette_start(state.stored.sh_rest))
+        size = palette_start(state.stored.sh_rest)
+        # A palette codes an SH vector per entry, not per Gaussian: fewer coded components than ``balance_steps``
+        # counted, so the steps that balance the error are finer by the square root of entries per Gaussian.
+        shrink = math.sqrt(min(1.0, size / max(len(state.stored), 1)))
+        palette = replace(balanced.steps, sh_palette=size, sh=tuple(s * shrink for s in balanced.steps.sh))
         variants.append((palette, ["sh_palette"] + balanced.order))
     for steps, order in variants:
         fit = fit_quantization(state, test, background, floor=floor, start=steps, psnr_before=psnr_before)
