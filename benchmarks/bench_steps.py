@@ -1,11 +1,12 @@
 """Quantisation alone: one common factor on the preset's steps against the fitted steps, and the SH palette's section.
 
 For each scene and floor (PSNR against renders of the input from held-out cameras, as ``symgs bench`` measures), no
-mirrors, pruning or SH reduction; rotations in their canonical frames (``codec.frames``), as the pipeline quantises
-them: ``budget.fit_quantization`` from ``QuantSteps()`` (one factor for every step), then
-``budget.fit_steps`` (balanced steps, common factor, one attribute at a time, SH per coefficient or as a palette).
-Prints each archive's bytes, held-out PSNR and bytes per section. ``--palette-sizes`` also codes each scene's higher
-SH bands alone, per coefficient and as palettes of those sizes, on the same steps, with the RMS error of each.
+mirrors, pruning or SH reduction; rotations in their canonical frames (``codec.frames``) and SH palette entries
+weighted by their renders (``stages.with_sh_weights``), as the pipeline quantises them: ``budget.fit_quantization``
+from ``QuantSteps()`` (one factor for every step), then ``budget.fit_steps`` (balanced steps, common factor, one
+attribute at a time, SH per coefficient or as a palette). Prints each archive's bytes, held-out PSNR and bytes per
+section. ``--palette-sizes`` also codes each scene's higher SH bands alone, per coefficient and as palettes of those
+sizes, on the same steps, with the RMS error of each.
 
     python benchmarks/bench_steps.py ../shared/data/padilla_captures_cc_by/plant_113k_sh0.ply --floors 60.36
 """
@@ -32,7 +33,7 @@ from symgs_core.codec.quantize import ShRestCodec  # noqa: E402
 from symgs_core.codec.steps import QuantSteps, register_quantized  # noqa: E402
 from symgs_core.optimize import LevelState  # noqa: E402
 from symgs_core.ply import load_scene  # noqa: E402
-from symgs_core.stages import write_archive  # noqa: E402
+from symgs_core.stages import with_sh_weights, write_archive  # noqa: E402
 from symgs_core.views import self_supervised_views  # noqa: E402
 
 
@@ -77,11 +78,12 @@ def main() -> None:
         state = LevelState.plain(canonical_frames(scene))
         print(f"{path.name}: {len(scene):,} Gaussians, SH degree {scene.sh_degree}, floor {floor:.2f} dB")
         t0 = time.perf_counter()
-        common = fit_quantization(state, test, views.background, floor=floor, start=QuantSteps(),
+        start = with_sh_weights(QuantSteps(), state, views.train)
+        common = fit_quantization(state, test, views.background, floor=floor, start=start,
                                   psnr_before=math.inf)  # fmt: skip
         print(_row("one common factor", state, common, time.perf_counter() - t0))
         t0 = time.perf_counter()
-        fitted = fit_steps(state, test, views.background, floor=floor, start=QuantSteps(), psnr_before=math.inf)
+        fitted = fit_steps(state, test, views.background, floor=floor, start=start, psnr_before=math.inf)
         print(_row("fitted steps", state, fitted, time.perf_counter() - t0))
         if sizes and scene.sh_degree:
             steps = QuantSteps().scaled(args.palette_step_factor).sh

@@ -104,7 +104,7 @@ def _canonical(state: LevelState) -> LevelState:
     return LevelState(canonical_frames(state.stored.detach()), state.normals, state.offsets, state.bits)
 
 
-def _weighted(start: QuantSteps, state: LevelState, train: list) -> QuantSteps:
+def with_sh_weights(start: QuantSteps, state: LevelState, train: list) -> QuantSteps:
     """``start`` with the render weight of each SH row of ``state`` over the training views, for the SH palette."""
     if not state.stored.sh_degree:
         return start
@@ -172,7 +172,7 @@ def reduce_and_encode(
     quantization_floor = floors["quantization"]
     reduced, exact = state is not mirrored, state
     state = _canonical(state)
-    start = _weighted(PRESET_STEPS[config.preset], state, train)
+    start = with_sh_weights(PRESET_STEPS[config.preset], state, train)
     fit = fit_steps(state, test, background, floor=quantization_floor, start=start, psnr_before=psnr)
     if reduced:
         # Pruning and SH reduction spend budget the quantiser could have spent: they stay only if the archive with
@@ -181,7 +181,7 @@ def reduce_and_encode(
         report("encode", 0.6, "fitting quantisation steps without pruning and SH reduction, to compare")
         direct = _canonical(mirrored)
         direct_fit = fit_steps(direct, test, background, floor=quantization_floor,
-                               start=_weighted(PRESET_STEPS[config.preset], direct, train),
+                               start=with_sh_weights(PRESET_STEPS[config.preset], direct, train),
                                psnr_before=mirrored_psnr)  # fmt: skip
         if direct_fit is not None and (
             fit is None or archive_bytes(direct.stored, direct_fit.steps) < archive_bytes(state.stored, fit.steps)
