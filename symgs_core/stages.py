@@ -112,11 +112,11 @@ def with_sh_weights(start: QuantSteps, state: LevelState, train: list) -> QuantS
     return replace(start, sh_weights=RowWeights.of(state.stored.sh_rest.detach().cpu().numpy(), weights))
 
 
-def _undone(record: dict) -> dict:
-    """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing."""
-    psnr_before = record["psnr_after"] + (record["cost_db"] or 0.0)
-    return {**record, "bytes_after": record["bytes_before"], "saved_bytes": 0, "psnr_after": psnr_before,
-            "cost_db": 0.0, "kept": False,
+def _undone(record: dict, psnr: float) -> dict:
+    """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing; the
+    held-out PSNR is ``psnr``, that of the state before the reductions, and ``psnr_if_kept`` what it measured."""
+    return {**record, "bytes_after": record["bytes_before"], "saved_bytes": 0, "psnr_after": psnr,
+            "psnr_if_kept": record["psnr_after"], "cost_db": 0.0, "kept": False,
             "reason": "the archive quantised without pruning and SH reduction was smaller"}  # fmt: skip
 
 
@@ -187,7 +187,7 @@ def reduce_and_encode(
             fit is None or archive_bytes(direct.stored, direct_fit.steps) < archive_bytes(state.stored, fit.steps)
         ):
             state, exact, fit, psnr, before_bytes = direct, mirrored, direct_fit, mirrored_psnr, mirrored_bytes
-            stages = [_undone(st) if st["stage"] in ("pruning", "sh_reduction") else st for st in stages]
+            stages = [_undone(st, psnr) if st["stage"] in ("pruning", "sh_reduction") else st for st in stages]
     report.timed("quantize", time.perf_counter() - t0)
     if fit is None:  # nothing lossy fits the budget that is left: store the attributes exactly
         state = exact

@@ -167,3 +167,13 @@ def test_quantised_result_is_never_larger_than_the_plain_codec(symmetric):
     else:  # mirrors were refused or did not pay: the result is the plain codec's
         assert report["gaussians"]["decoded"] == report["gaussians"]["stored"]
     assert report["psnr"] >= report["psnr_floor"] - 1e-6
+
+
+def test_an_undone_reduction_reports_no_saving_and_what_it_measured() -> None:
+    from symgs_core.stages import _stage, _undone
+
+    record = _stage("sh_reduction", 1000, 900, 60.0, 52.4, 1.5, removed=7, threshold=0.01)
+    undone = _undone(record, 60.0)
+    assert undone["kept"] is False and undone["reason"]
+    assert (undone["bytes_after"], undone["saved_bytes"], undone["cost_db"]) == (1000, 0, 0.0)
+    assert (undone["psnr_after"], undone["psnr_if_kept"], undone["removed"]) == (60.0, 52.4, 7)
