@@ -50,14 +50,15 @@ class _Reporter:
     def __init__(self, progress: ProgressFn | None, should_stop: StopFn | None) -> None:
         self.progress, self.should_stop = progress, should_stop
         self.seconds: dict[str, float] = {}
+        self.reached = 0.0  # the bar never moves back, though a stage may run its steps twice (mirrors on and off)
 
     def __call__(self, stage: str, within: float, message: str, level: int | None = None) -> None:
         if self.should_stop is not None and self.should_stop():
             raise Cancelled()
         lo, hi = _STAGES[stage]
         if self.progress is not None:
-            fraction = lo + (hi - lo) * min(max(within, 0.0), 1.0)
-            self.progress(ProgressEvent(stage, level, fraction, message))
+            self.reached = max(self.reached, lo + (hi - lo) * min(max(within, 0.0), 1.0))
+            self.progress(ProgressEvent(stage, level, self.reached, message))
 
     def timed(self, stage: str, seconds: float) -> None:
         self.seconds[stage] = self.seconds.get(stage, 0.0) + seconds

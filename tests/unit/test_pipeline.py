@@ -152,6 +152,13 @@ def test_progress_is_monotone_and_cancel_stops(symmetric):
     compress(symmetric.scene, config=CompressConfig(**{**FAST.__dict__, "max_levels": 1}), progress=events.append)
     fractions = [e.fraction for e in events]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    # A quantised preset runs the reductions and the step fit twice (with the mirrors, then without): still monotone.
+    quantised = []
+    config = CompressConfig(**{**FAST.__dict__, "max_levels": 1, "preset": "small", "psnr_budget": 3.0})
+    result = compress(symmetric.scene, config=config, progress=quantised.append)
+    fractions = [e.fraction for e in quantised]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert result.report["plain_codec_bytes"] is not None  # the second pass ran
     assert {"load", "views", "levels", "encode", "evaluate"} <= {e.stage for e in events}
     calls = iter(range(1000))
     with pytest.raises(Cancelled):
