@@ -4,6 +4,11 @@ Each stage reports what it saved in bytes and cost in dB (held-out PSNR), so a r
 mirrors, pruning and SH reduction are measured on the lossless (float32 + zstd) archive of what they leave;
 quantisation against the fixed-width size of its symbols (what a plain quantiser would store); entropy coding is
 the final archive. Preset ``lossless`` runs no reduction and stores float32, as the archive always did.
+
+Quantised presets store each rotation in its canonical frame (``codec.frames``) and give the SH palette the render
+weight of every SH row (``with_sh_weights``). Pruning and SH reduction spend budget the quantiser could spend: when
+they removed anything, the steps are also fitted straight after the mirrors, and the reductions stay only if the
+archive with them is the smaller (their records then say ``kept: false``).
 """
 
 from __future__ import annotations
