@@ -88,6 +88,9 @@ _MAX_SHIFT = 8.0  # how far balancing may move one attribute's step from the sta
 _EXACT = 0.01  # an error per component below this share of the mean counts as none
 _EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette starts exact
 _PALETTE = 1 << 14  # the k-means palette size tried first otherwise
+# Palette SH steps start this much finer again; measured (bench_steps.py, .spz floors): playbot 31k 377,620 ->
+# 372,760 B, playbot 125k 1,422,756 -> 1,417,341 B, kacytran 86,915 -> 83,148 B; 1.25 was larger (382,446 B).
+_PALETTE_SH = 0.8
 
 
 @dataclass
@@ -294,8 +297,9 @@ def fit_steps(
     if state.stored.sh_degree:
         size = palette_start(state.stored.sh_rest)
         # A palette codes an SH vector per entry, not per Gaussian: fewer coded components than ``balance_steps``
-        # counted, so the steps that balance the error are finer by the square root of entries per Gaussian.
-        shrink = math.sqrt(min(1.0, size / max(len(state.stored), 1)))
+        # counted, so the steps that balance the error are finer by the square root of entries per Gaussian; and
+        # finer again (``_PALETTE_SH``) where the entry classes make the entries few renders see cheaper.
+        shrink = _PALETTE_SH * math.sqrt(min(1.0, size / max(len(state.stored), 1)))
         palette = replace(balanced.steps, sh_palette=size, sh=tuple(s * shrink for s in balanced.steps.sh))
         variants.append((palette, ["sh_palette"] + balanced.order))
     for steps, order in variants:
