@@ -88,8 +88,8 @@ _MAX_SHIFT = 8.0  # how far balancing may move one attribute's step from the sta
 _EXACT = 0.01  # an error per component below this share of the mean counts as none
 _EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette starts exact
 _PALETTE = 1 << 14  # the k-means palette size tried first otherwise
-# Palette SH steps start this much finer again; measured (bench_steps.py, .spz floors): playbot 31k 377,620 ->
-# 372,760 B, playbot 125k 1,422,756 -> 1,417,341 B, kacytran 86,915 -> 83,148 B; 1.25 was larger (382,446 B).
+# Palette SH steps start this much finer again; benchmarks/bench_steps.py at the .spz floors: playbot 31k 379,026 ->
+# 375,194 B, kacytran 88,335 -> 83,195 B (symgs bench: playbot 125k unchanged within 0.1%).
 _PALETTE_SH = 0.8
 
 
