@@ -121,7 +121,7 @@ def encode_archive(contents: ArchiveContents, *, codec: str = "lossless") -> byt
         "meta": contents.meta,
     }
     data = container.frame(header, b"".join(payloads))
-    header_bytes = len(data) - container.PREFIX_SIZE - offset
+    header_bytes = len(container.header_text(header))
     if header_bytes > DecodeLimits().max_header_bytes:
         raise ValueError(f"archive header of {header_bytes} bytes exceeds what readers accept; shrink meta")
     return data

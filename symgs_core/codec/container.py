@@ -5,11 +5,14 @@
     8       4     format version, uint32 little-endian (FORMAT_VERSION)
     12      4     header length H in bytes, uint32 little-endian
     16      4     CRC32 of the header bytes, uint32 little-endian
-    20      H     header: UTF-8 JSON object (schema in ``archive.py``)
+    20      H     header: one zstd frame of a UTF-8 JSON object (schema in ``archive.py``); version 1 files hold
+                  the JSON itself, and readers still read them
     20 + H  ...   section payloads, contiguous, in section-table order, ending exactly at the end of the file
 
 Section offsets in the header count from the first byte after the header, so the header never depends on its own
-length. This module only frames and unframes; it knows nothing of Gaussians.
+length. The header is compressed since version 2: its JSON repeats keys per section, and zstd takes a 1.5 kB header
+to about 0.7 kB, which is 0.2% of a 30,000-Gaussian archive. This module only frames and unframes; it knows nothing
+of Gaussians.
 """
 
 from __future__ import annotations
@@ -20,9 +23,11 @@ import zlib
 from typing import Any
 
 from .errors import ArchiveError
+from .section import zstd_compress, zstd_decompress_exact
 
 MAGIC = b"\x89SYMGS\r\n"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)  # 1: the header is plain JSON; 2: a zstd frame of it
 _PREFIX = struct.Struct("<8sIII")
 PREFIX_SIZE = _PREFIX.size  # 20
 
@@ -31,10 +36,33 @@ def crc32(data: bytes | memoryview) -> int:
     return zlib.crc32(data) & 0xFFFFFFFF
 
 
+def header_text(header: dict[str, Any]) -> bytes:
+    """The canonical JSON of ``header``, as ``frame`` compresses it (its length is what readers limit)."""
+    return json.dumps(header, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode("ascii")
+
+
 def frame(header: dict[str, Any], body: bytes) -> bytes:
-    """prefix + canonical JSON of ``header`` + ``body`` (the sections, already laid out as the header says)."""
-    text = json.dumps(header, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode("ascii")
-    return _PREFIX.pack(MAGIC, FORMAT_VERSION, len(text), crc32(text)) + text + body
+    """prefix + compressed canonical JSON of ``header`` + ``body`` (the sections, laid out as the header says)."""
+    packed = zstd_compress(header_text(header), 19)
+    return _PREFIX.pack(MAGIC, FORMAT_VERSION, len(packed), crc32(packed)) + packed + body
+
+
+def _inflate(packed: bytes, max_header_bytes: int) -> bytes:
+    """The JSON of a version 2 header, whose zstd frame must declare a size within ``max_header_bytes``."""
+    import zstandard
+
+    try:
+        size = zstandard.frame_content_size(packed)
+    except zstandard.ZstdError as exc:
+        raise ArchiveError("bad_header", f"header is not a zstd frame ({exc})") from exc
+    if size < 0:
+        raise ArchiveError("bad_header", "header's zstd frame does not declare its size")
+    if size > max_header_bytes:
+        raise ArchiveError("limit_exceeded", f"header of {size} bytes exceeds the limit of {max_header_bytes}")
+    try:
+        return zstd_decompress_exact(packed, size, "header")
+    except ArchiveError as exc:
+        raise ArchiveError("bad_header", f"header does not inflate ({exc})") from exc
 
 
 def _reject_constant(name: str) -> None:
@@ -64,8 +92,8 @@ def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
     if len(view) < PREFIX_SIZE:
         raise ArchiveError("truncated", f"{len(view)} bytes: the file ends inside the {PREFIX_SIZE}-byte prefix")
     _, version, header_len, header_crc = _PREFIX.unpack_from(view)
-    if version != FORMAT_VERSION:
-        raise ArchiveError("unsupported_version", f"format version {version}; this build reads {FORMAT_VERSION}")
+    if version not in READ_VERSIONS:
+        raise ArchiveError("unsupported_version", f"format version {version}; this build reads {READ_VERSIONS}")
     if header_len > max_header_bytes:
         raise ArchiveError("limit_exceeded", f"header of {header_len} bytes exceeds the limit of {max_header_bytes}")
     end = PREFIX_SIZE + header_len
@@ -74,6 +102,8 @@ def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
     text = view[PREFIX_SIZE:end]
     if crc32(text) != header_crc:
         raise ArchiveError("bad_checksum", f"header CRC32 {crc32(text):08x}, prefix says {header_crc:08x}")
+    if version == 2:
+        text = _inflate(bytes(text), max_header_bytes)
     try:
         header = json.loads(
             bytes(text).decode("utf-8"), parse_constant=_reject_constant, object_pairs_hook=_unique_keys

@@ -35,11 +35,14 @@ DATA = small_archive()
 
 def split(data: bytes) -> tuple[dict[str, Any], bytes]:
     header_len = int.from_bytes(data[12:16], "little")
-    return json.loads(data[20 : 20 + header_len]), data[20 + header_len :]
+    text = zstandard.ZstdDecompressor().decompress(data[20 : 20 + header_len])
+    return json.loads(text), data[20 + header_len :]
 
 
-def frame(text: bytes, body: bytes, version: int = 1) -> bytes:
-    return MAGIC + struct.pack("<III", version, len(text), zlib.crc32(text)) + text + body
+def frame(text: bytes, body: bytes, version: int = 2) -> bytes:
+    """A frame of header ``text`` (version 2: zstd-compressed, as the writer does; 1: plain)."""
+    packed = zstandard.ZstdCompressor(level=19).compress(text) if version == 2 else text
+    return MAGIC + struct.pack("<III", version, len(packed), zlib.crc32(packed)) + packed + body
 
 
 def reframe(header: dict[str, Any], body: bytes) -> bytes:
@@ -285,7 +288,7 @@ def test_header_that_is_not_a_strict_json_object(text: bytes) -> None:
 
 def test_unsupported_version_and_header_size_limit() -> None:
     header, body = split(DATA)
-    assert code_of(frame(json.dumps(header).encode(), body, version=2)) == "unsupported_version"
+    assert code_of(frame(json.dumps(header).encode(), body, version=3)) == "unsupported_version"
     assert code_of(DATA, DecodeLimits(max_header_bytes=100)) == "limit_exceeded"
     assert code_of(DATA, DecodeLimits(max_gaussians=4)) == "limit_exceeded"
     assert code_of(DATA, DecodeLimits(max_levels=1)) == "limit_exceeded"
@@ -326,3 +329,24 @@ def _zstd(raw: bytes, **kwargs: Any) -> bytes:
 )
 def test_hostile_payloads_with_valid_checksums(name: str, payload: bytes, raw_length: int | None) -> None:
     assert code_of(with_payload(DATA, name, payload, raw_length)) == "corrupt_section"
+
+
+def test_headers_are_compressed_and_plain_version_1_headers_still_read() -> None:
+    header, body = split(DATA)
+    text = json.dumps(header, separators=(",", ":")).encode()
+    assert int.from_bytes(DATA[12:16], "little") < len(text)  # the writer's header is the compressed one
+    plain = decode_archive(frame(text, body, version=1))
+    assert plain.stored.means.shape == decode_archive(DATA).stored.means.shape
+
+
+def test_version_2_headers_that_do_not_inflate_are_refused() -> None:
+    header, body = split(DATA)
+    text = json.dumps(header, separators=(",", ":")).encode()
+    not_zstd = MAGIC + struct.pack("<III", 2, len(text), zlib.crc32(text)) + text + body
+    assert code_of(not_zstd) == "bad_header"
+    big = zstandard.ZstdCompressor().compress(b" " * 5000 + text)
+    framed = MAGIC + struct.pack("<III", 2, len(big), zlib.crc32(big)) + big + body
+    assert code_of(framed, DecodeLimits(max_header_bytes=4096)) == "limit_exceeded"
+    unsized = zstandard.ZstdCompressor(write_content_size=False).compress(text)
+    framed = MAGIC + struct.pack("<III", 2, len(unsized), zlib.crc32(unsized)) + unsized + body
+    assert code_of(framed) == "bad_header"

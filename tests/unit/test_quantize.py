@@ -146,7 +146,7 @@ def test_quantized_archive_encoding_is_pinned() -> None:
     assert hashlib.sha256(data).hexdigest() == PINNED
 
 
-PINNED = "d87e30d324d31247f7c1798e217d8f4241ee82436fda2ebd7b178aaf3b0978fd"
+PINNED = "5d28fe48715ee6bb7c5100460f38898bb661b5978e5cadbcb48949f9a07cd0be"
 
 
 @pytest.mark.parametrize(
