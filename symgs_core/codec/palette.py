@@ -36,9 +36,9 @@ from .quantize import (
     _grid,
     _keys,
     _raw_length,
-    _step,
     _symbols,
     band_slices,
+    check_bands,
 )
 from .section import EncodedSection, SectionKind, join_parts, split_all, split_parts
 
@@ -374,14 +374,10 @@ class ShPaletteCodec:
         if len(shape) != 3 or shape[1] not in SH_DEGREES or shape[2] != 3:
             raise ArchiveError("bad_header", f"{self.name}: cannot hold an array of shape {shape}")
         degree = SH_DEGREES[shape[1]]
-        size, steps, mixed = params["size"], params["steps"], params["decorrelate"]
+        size = params["size"]
         if type(size) is not int or not 1 <= size <= min(MAX_PALETTE, shape[0] + 1):
             raise ArchiveError("bad_header", f"{self.name}: palette size {size!r:.40} for {shape[0]} rows")
-        if not isinstance(steps, list) or len(steps) != degree or not isinstance(mixed, list) or len(mixed) != degree:
-            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} and decorrelate for SH degree {degree}")
-        for s, m in zip(steps, mixed):
-            _step({"step": s}, self.name)
-            _flag({"decorrelate": m}, "decorrelate", self.name)
+        check_bands(params, degree, self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:

@@ -394,6 +394,16 @@ class ShDcCodec:
         return (params["origin"] + q * params["step"]).astype(np.float32)
 
 
+def check_bands(params: dict[str, Any], degree: int, codec: str) -> None:
+    """ArchiveError unless ``params`` hold a positive step and a decorrelation flag for each of ``degree`` SH bands."""
+    steps, mixed = params["steps"], params["decorrelate"]
+    if not isinstance(steps, list) or len(steps) != degree or not isinstance(mixed, list) or len(mixed) != degree:
+        raise ArchiveError("bad_header", f"{codec}: steps {steps!r:.60} and decorrelate for SH degree {degree}")
+    for s, m in zip(steps, mixed):
+        _step({"step": s}, codec)
+        _flag({"decorrelate": m}, "decorrelate", codec)
+
+
 def band_slices(degree: int) -> list[slice]:
     """Rows of ``sh_rest`` [N, K, 3] that hold band l = 1..degree."""
     return [slice(lvl * lvl - 1, (lvl + 1) * (lvl + 1) - 1) for lvl in range(1, degree + 1)]
@@ -434,13 +444,7 @@ class ShRestCodec:
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"steps", "decorrelate"}, self.name)
-        degree = {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]]
-        steps, mixed = params["steps"], params["decorrelate"]
-        if not isinstance(steps, list) or len(steps) != degree or not isinstance(mixed, list) or len(mixed) != degree:
-            raise ArchiveError("bad_header", f"{self.name}: steps {steps!r:.60} and decorrelate for SH degree {degree}")
-        for s, m in zip(steps, mixed):
-            _step({"step": s}, self.name)
-            _flag({"decorrelate": m}, "decorrelate", self.name)
+        check_bands(params, {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]], self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
