@@ -11,9 +11,9 @@ keeps the smaller of the two).
 The stored set is sorted by level group first (``order.coding_order``), so the codes rise in runs; each run's first
 code is stored whole.
 
-    payload   u32 length + table of classes [N, 1] (0: gap 0, b: gap in [2^(b-1), 2^b), RUN: a run's first code),
-              then u32 length + (varint R, R little-endian int64: each run's first code),
-              then per class b = 2..63 present: u32 length + its gaps' low b-1 bits, packed most significant first
+    payload   parts joined by ``section.join_parts``: the table of classes [N, 1] (0: gap 0, b: gap in
+              [2^(b-1), 2^b), RUN: a run's first code); varint R and R little-endian int64, each run's first code;
+              per class b = 2..63 present, its gaps' low b-1 bits, packed most significant first
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
 from .masks import pack_uint, read_varints, unpack_uint, write_varints
-from .section import join_parts, split_parts
+from .section import join_parts, split_all
 
 AXIS_BITS = 21  # 3 x 21 bits fill a non-negative int64
 RUN = 64  # class of a run's first code
@@ -84,25 +84,29 @@ def encode_codes(codes: np.ndarray) -> bytes:
     starts[1:] = gaps[1:] < 0
     classes = _classes(np.where(starts, 0, gaps))
     classes[starts] = RUN
-    parts = [write_varints(np.array([starts.sum()])) + codes[starts].astype("<i8").tobytes()]
+    parts = [
+        encode_table(classes[:, None]),
+        write_varints(np.array([starts.sum()])) + codes[starts].astype("<i8").tobytes(),
+    ]
     for width in range(2, 64):
         chosen = classes == width
         if chosen.any():
             parts.append(pack_uint(gaps[chosen] - (np.int64(1) << (width - 1)), width - 1))
-    return join_parts([encode_table(classes[:, None])]) + join_parts(parts)
+    return join_parts(parts)
 
 
 def decode_codes(payload: bytes, n: int, what: str) -> np.ndarray:
     """Inverse of ``encode_codes`` for ``n`` codes; ArchiveError if the stream does not hold exactly that."""
-    if len(payload) < 4 or 4 + int.from_bytes(payload[:4], "little") > len(payload):
-        raise ArchiveError("corrupt_section", f"{what}: the Morton gap classes are cut short")
-    split = 4 + int.from_bytes(payload[:4], "little")
-    classes = decode_table(payload[4:split], n, 1, what)[:, 0]
+    parts = split_all(payload, what)
+    if not parts:
+        raise ArchiveError("corrupt_section", f"{what}: no Morton gap classes")
+    classes = decode_table(parts[0], n, 1, what)[:, 0]
     if n and (classes.min() < 0 or classes.max() > RUN):
         raise ArchiveError("corrupt_section", f"{what}: a Morton gap class lies outside 0..{RUN}")
     widths = [w for w in range(2, 64) if (classes == w).any()]
-    parts = split_parts(payload[split:], 1 + len(widths), what)
-    buf = np.frombuffer(parts[0], dtype=np.uint8)
+    if len(parts) != 2 + len(widths):
+        raise ArchiveError("corrupt_section", f"{what}: {len(parts)} parts for {len(widths)} gap widths")
+    buf = np.frombuffer(parts[1], dtype=np.uint8)
     (runs,), pos = read_varints(buf, 0, 1)
     starts = classes == RUN
     if int(runs) != int(starts.sum()) or (n and not starts[0]):
@@ -112,7 +116,7 @@ def decode_codes(payload: bytes, n: int, what: str) -> np.ndarray:
     firsts = buf[pos:].view("<i8")
     gaps = np.where(classes > 0, np.int64(1) << np.clip(classes - 1, 0, 62), 0).astype(np.int64)
     gaps[starts] = 0
-    for width, part in zip(widths, parts[1:]):
+    for width, part in zip(widths, parts[2:]):
         chosen = np.flatnonzero(classes == width)
         gaps[chosen] += unpack_uint(part, len(chosen), width - 1, what)
     total = np.cumsum(gaps)

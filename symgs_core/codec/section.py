@@ -96,17 +96,9 @@ def join_parts(parts: list[bytes]) -> bytes:
 
 def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
     """The ``count`` streams of a ``join_parts`` payload; ArchiveError unless they fill it exactly."""
-    parts, pos = [], 0
-    for i in range(count):
-        if pos + 4 > len(payload):
-            raise ArchiveError("corrupt_section", f"{codec}: payload ends before part {i}")
-        length = int.from_bytes(payload[pos : pos + 4], "little")
-        parts.append(payload[pos + 4 : pos + 4 + length])
-        if len(parts[-1]) != length:
-            raise ArchiveError("corrupt_section", f"{codec}: part {i} is cut short")
-        pos += 4 + length
-    if pos != len(payload):
-        raise ArchiveError("corrupt_section", f"{codec}: {len(payload) - pos} bytes after the last part")
+    parts = split_all(payload, codec)
+    if len(parts) != count:
+        raise ArchiveError("corrupt_section", f"{codec}: {len(parts)} parts, expected {count}")
     return parts
 
 
