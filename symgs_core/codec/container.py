@@ -22,6 +22,8 @@ import struct
 import zlib
 from typing import Any
 
+import zstandard
+
 from .errors import ArchiveError
 from .section import zstd_compress, zstd_decompress_exact
 
@@ -49,8 +51,6 @@ def frame(header: dict[str, Any], body: bytes) -> bytes:
 
 def _inflate(packed: bytes, max_header_bytes: int) -> bytes:
     """The JSON of a version 2 header, whose zstd frame must declare a size within ``max_header_bytes``."""
-    import zstandard
-
     try:
         size = zstandard.frame_content_size(packed)
     except zstandard.ZstdError as exc:
