@@ -22,6 +22,14 @@ def _roundtrip(codec: PositionCodec, values: np.ndarray) -> tuple[np.ndarray, di
     return codec.decode(coded.payload, values.shape, coded.params, coded.raw_length), coded.params, len(coded.payload)
 
 
+def _assert_the_step_asked_for(values: np.ndarray, step: float, tolerance: float) -> None:
+    """``values`` coded on ``step`` from their minimum, as without a native grid: error within half a step."""
+    out, params, _ = _roundtrip(PositionCodec(step), values)
+    assert params["step"] == step
+    assert params["origin"] == values.min(axis=0).astype(np.float64).tolist()
+    assert np.abs(out - values).max() <= step / 2 + tolerance
+
+
 def _forced(values: np.ndarray, step: float) -> int:
     """Payload bytes of ``values`` [N, 3] on a ``step`` grid from their minimum: the coding without grid detection."""
     x = values.astype(np.float64)
@@ -57,11 +65,7 @@ def test_positions_on_a_grid_decode_bit_for_bit_and_code_smaller(origin: float, 
 def test_positions_off_the_grid_by_float_noise_keep_the_step_asked_for() -> None:
     values = _on_grid(0.4 * GRID, GRID)
     noisy = (values + np.random.default_rng(1).uniform(-0.01, 0.01, size=values.shape) * GRID).astype(np.float32)
-    step = GRID / 4.85
-    out, params, _ = _roundtrip(PositionCodec(step), noisy)
-    assert params["step"] == step
-    assert params["origin"] == noisy.min(axis=0).astype(np.float64).tolist()
-    assert np.abs(out - noisy).max() <= step / 2 + 1e-6
+    _assert_the_step_asked_for(noisy, GRID / 4.85, 1e-6)
 
 
 def test_a_step_three_grid_cells_wide_keeps_whole_multiples_of_the_grid() -> None:
@@ -76,10 +80,7 @@ def test_a_step_three_grid_cells_wide_keeps_whole_multiples_of_the_grid() -> Non
 def test_continuous_positions_keep_the_step_asked_for() -> None:
     values = (np.random.default_rng(2).normal(size=(20000, 3)) * 5).astype(np.float32)
     step = 1e-3
-    out, params, _ = _roundtrip(PositionCodec(step), values)
-    assert params["step"] == step
-    assert params["origin"] == values.min(axis=0).astype(np.float64).tolist()
-    assert np.abs(out - values).max() <= step / 2 + 1e-5
+    _assert_the_step_asked_for(values, step, 1e-5)
     empty, params, _ = _roundtrip(PositionCodec(step), np.zeros((0, 3), dtype=np.float32))
     assert empty.shape == (0, 3) and (params["origin"], params["step"]) == ([0.0, 0.0, 0.0], step)
 
@@ -88,11 +89,7 @@ def test_axes_on_grids_of_different_steps_keep_the_step_asked_for() -> None:
     k = np.random.default_rng(3).integers(-3000, 3000, size=(20000, 3))
     values = (k * np.array([GRID, 1 / 1000, GRID])).astype(np.float32)
     assert all(native_grid(values[:2000, a].astype(np.float64), 0.0) for a in range(3))  # each axis alone: a grid
-    step = GRID / 3
-    out, params, _ = _roundtrip(PositionCodec(step), values)
-    assert params["step"] == step
-    assert params["origin"] == values.min(axis=0).astype(np.float64).tolist()
-    assert np.abs(out - values).max() <= step / 2 + 1e-6
+    _assert_the_step_asked_for(values, GRID / 3, 1e-6)
 
 
 def test_the_grid_step_is_refined_before_the_values_are_tested() -> None:
