@@ -17,8 +17,8 @@ from pathlib import Path
 
 import httpx
 
+from service.cli.stack import LocalStack
 from service.client import SymgsClient
-from service.stack import LocalStack
 
 TINY = {"iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64, "max_levels": 1, "device": "cpu"}
 

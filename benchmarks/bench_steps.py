@@ -25,15 +25,15 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from symgs_core.budget import extent_of, fit_quantization, fit_steps  # noqa: E402
 from symgs_core.codec import read_header  # noqa: E402
 from symgs_core.codec.frames import canonical_frames  # noqa: E402
 from symgs_core.codec.palette import ShPaletteCodec  # noqa: E402
 from symgs_core.codec.quantize import ShRestCodec  # noqa: E402
 from symgs_core.codec.steps import QuantSteps, register_quantized  # noqa: E402
-from symgs_core.optimize import LevelState  # noqa: E402
+from symgs_core.pipeline.budget import extent_of, fit_quantization, fit_steps  # noqa: E402
+from symgs_core.pipeline.encode import with_sh_weights, write_archive  # noqa: E402
+from symgs_core.pipeline.state import LevelState  # noqa: E402
 from symgs_core.ply import load_scene  # noqa: E402
-from symgs_core.stages import with_sh_weights, write_archive  # noqa: E402
 from symgs_core.views import self_supervised_views  # noqa: E402
 
 

@@ -26,9 +26,8 @@ from pathlib import Path
 import torch
 
 from .config import CompressConfig
-from .optimize import evaluate
 from .scene import GaussianScene
-from .views import ViewSet, self_supervised_views
+from .views import ViewSet, evaluate, self_supervised_views
 
 COLUMNS = ["scene", "entry", "preset", "mirrors", "bytes", "ratio_to_ply", "psnr", "encode_s", "decode_s", "gaussians"]
 

@@ -6,6 +6,7 @@ image: a scalar for [H, W, 3], shape [B] for a batch.
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import torch
@@ -24,6 +25,16 @@ def _check_pair(img: Tensor, ref: Tensor) -> None:
         raise ValueError(f"image shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
     if img.dim() not in (3, 4) or img.shape[-1] != 3:
         raise ValueError(f"expected images [H, W, 3] or [B, H, W, 3], got {tuple(img.shape)}")
+
+
+def mse_to_psnr(mse: float) -> float:
+    """PSNR in dB of a mean squared error on [0, 1] images; +inf for a perfect match."""
+    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
+
+
+def psnr_to_mse(psnr: float) -> float:
+    """The mean squared error on [0, 1] images of a PSNR in dB; 0 for +inf."""
+    return 0.0 if math.isinf(psnr) and psnr > 0 else 10.0 ** (-psnr / 10.0)
 
 
 def psnr(img: Tensor, ref: Tensor, max_val: float = 1.0) -> Tensor:

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from .cameras import Camera, orbit_cameras, scene_bounds
+from .metrics import mse_to_psnr, ssim
 from .scene import GaussianScene
 
 
@@ -97,3 +98,19 @@ def dataset_views(
         return [(v.camera.to(device), v.image.to(device)) for v in views]
 
     return ViewSet(train=load("train", None), test=load("test", max_test), source="test images", background=background)
+
+
+@torch.no_grad()
+def evaluate(scene: GaussianScene, views: list[tuple[Camera, Tensor]], background: Tensor) -> tuple[float, float]:
+    """Mean PSNR (dB, from the mean MSE over views) and mean SSIM of ``scene`` against the views' targets."""
+    if not views:
+        raise ValueError("evaluate needs at least one view")
+    mse, ssims = 0.0, []
+    from .render import render
+
+    for cam, target in views:
+        image = render(scene, cam, background).image
+        mse += float(((image - target) ** 2).mean())
+        ssims.append(float(ssim(image, target)))
+    mse /= len(views)
+    return mse_to_psnr(mse), sum(ssims) / len(ssims)

@@ -15,7 +15,7 @@ from fastapi import APIRouter
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
-from ..errors import ApiError
+from ..api.errors import ApiError
 
 router = APIRouter(include_in_schema=False)
 

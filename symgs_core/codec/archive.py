@@ -24,8 +24,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import COORDINATE_CONVENTION
-from ..hierarchy import expand_planes
-from ..mirror import Plane
+from ..mirror import Plane, expand_planes
 from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
 from .errors import ArchiveError

@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..levels import LevelRecord
 from ..mirror import Plane
+from ..pipeline.levels import LevelRecord
 from ..scene import GaussianScene
 from ..views import ViewSet
 from .charts import ChartPoint, job_points, rate_distortion_png, speed_accuracy_png

@@ -17,7 +17,7 @@ from matplotlib.axes import Axes
 from matplotlib.ticker import EngFormatter
 from matplotlib.transforms import blended_transform_factory
 
-from ..levels import LevelRecord
+from ..pipeline.levels import LevelRecord
 from ._png import new_figure, png_bytes
 from .palette import NEUTRAL, level_colour
 

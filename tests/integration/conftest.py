@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.stack import LocalStack
+from service.cli.stack import LocalStack
 
 KEY_A, KEY_B = "key-a-7f3e", "key-b-91c2"
 # A few seconds per job on the CPU.

@@ -18,8 +18,8 @@ from fastapi.testclient import TestClient
 from playwright.sync_api import Browser, Page, sync_playwright
 from playwright.sync_api import Error as PlaywrightError
 
+from service.api.errors import install_handlers
 from service.dashboard.routes import CSP, MEDIA_TYPES, STATIC, router
-from service.errors import install_handlers
 from tests.integration.conftest import KEY_A, TINY, client_for
 
 pytestmark = pytest.mark.integration

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import httpx
 
-from service.stack import SYMGS
+from service.cli.stack import SYMGS
 from tests.integration.conftest import KEY_A, TINY
 
 

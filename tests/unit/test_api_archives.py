@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from service.archives import ArchiveLimits, extract, extract_dataset, safe_parts
-from service.errors import ApiError
+from service.api.archives import ArchiveLimits, extract, extract_dataset, safe_parts
+from service.api.errors import ApiError
 
 LIMITS = ArchiveLimits(max_entries=20, max_bytes=1 << 20, max_images=4, max_image_pixels=64 * 64)
 

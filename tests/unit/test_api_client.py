@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from service.archives import ArchiveLimits, extract_dataset
+from service.api.archives import ArchiveLimits, extract_dataset
 from service.client import zip_folder
 
 

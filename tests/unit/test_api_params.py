@@ -7,8 +7,8 @@ import dataclasses
 import pytest
 
 from api_schemas import JobParams
-from service.errors import ApiError
-from service.submission import parse_params
+from service.api.errors import ApiError
+from service.api.submission import parse_params
 from symgs_core.config import CompressConfig
 from worker.settings import Settings
 

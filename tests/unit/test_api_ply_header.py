@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from service.errors import ApiError
-from service.ply_header import check_ply
+from service.api.errors import ApiError
+from service.api.ply_header import check_ply
 from symgs_core.ply import PlyError, read_scene, save_scene
 from symgs_core.scene import GaussianScene
 

@@ -44,8 +44,7 @@ from symgs_core.codec import (
 )
 from symgs_core.codec.floats import FLOAT32
 from symgs_core.codec.masks import MASKS
-from symgs_core.hierarchy import expand, expand_planes
-from symgs_core.mirror import Plane
+from symgs_core.mirror import Plane, expand, expand_planes
 from symgs_core.scene import SH_REST_COUNT, GaussianScene
 
 SPECIAL = torch.tensor([0x80000000, 0x00000001, 0x7F800000, 0xFF800000, 0x7FC00001, 0x7F7FFFFF], dtype=torch.int64)

@@ -8,7 +8,7 @@ import torch
 
 from symgs_core.codec import coding_order, morton_codes
 from symgs_core.codec.masks import MASKS, column_runs
-from symgs_core.hierarchy import expand
+from symgs_core.mirror import expand
 from symgs_core.scene import GaussianScene
 from tests.unit.test_archive import random_contents
 

@@ -175,6 +175,6 @@ def test_info_on_the_real_fox(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_the_command_module_imports_no_torch() -> None:
-    code = "import sys, service.cmd_scene; print(any(m == 'torch' or m.startswith('symgs_core') for m in sys.modules))"
+    code = "import sys, service.cli.scene; print(any(m == 'torch' or m.startswith('symgs_core') for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], cwd=PROJECT_ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -88,7 +88,7 @@ def test_a_palette_of_one_entry_and_a_scene_without_higher_bands() -> None:
 
 @pytest.mark.parametrize("degree", [0, 2])
 def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
-    from symgs_core.budget import extent_of, quantized
+    from symgs_core.pipeline.budget import extent_of, quantized
 
     g = torch.Generator().manual_seed(degree)
     n, k = 600, (degree + 1) ** 2 - 1

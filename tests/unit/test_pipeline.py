@@ -9,12 +9,13 @@ import torch
 
 from symgs_core.config import CompressConfig
 from symgs_core.detect import DetectConfig, detect
-from symgs_core.levels import Membership, memberships, try_level
-from symgs_core.optimize import LevelState, evaluate
-from symgs_core.pipeline import _Reporter, compress, decompress
+from symgs_core.pipeline import compress, decompress
+from symgs_core.pipeline.compress import _Reporter
+from symgs_core.pipeline.levels import Membership, memberships, try_level
+from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
 from symgs_core.synthetic import synthetic_scene
-from symgs_core.views import self_supervised_views
+from symgs_core.views import evaluate, self_supervised_views
 
 FAST = CompressConfig(iterations=10, train_views=4, eval_views=2, resolution=64, max_levels=2, pictures=False)
 
@@ -177,7 +178,7 @@ def test_quantised_result_is_never_larger_than_the_plain_codec(symmetric):
 
 
 def test_an_undone_reduction_reports_no_saving_and_what_it_measured() -> None:
-    from symgs_core.stages import _stage, _undone
+    from symgs_core.pipeline.encode import _stage, _undone
 
     record = _stage("sh_reduction", 1000, 900, 60.0, 52.4, 1.5, removed=7, threshold=0.01)
     undone = _undone(record, 60.0)

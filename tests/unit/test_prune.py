@@ -9,13 +9,13 @@ import pytest
 import torch
 
 from symgs_core.cameras import scene_cameras
-from symgs_core.optimize import LevelState, evaluate
-from symgs_core.prune import band_energy, contributions, prune, reduce_sh, truncate_sh
+from symgs_core.pipeline.prune import band_energy, contributions, prune, reduce_sh, truncate_sh
+from symgs_core.pipeline.state import LevelState
 from symgs_core.render import render
 from symgs_core.scene import GaussianScene
 from symgs_core.sh import eval_sh
 from symgs_core.synthetic import synthetic_scene
-from symgs_core.views import self_supervised_views
+from symgs_core.views import evaluate, self_supervised_views
 
 
 @pytest.fixture(scope="module")

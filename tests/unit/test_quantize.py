@@ -123,7 +123,7 @@ def test_sh_rest_keeps_a_degree_per_gaussian_and_dropped_bands_cost_nothing() ->
 
 @pytest.mark.parametrize("degree", [0, 2])
 def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
-    from symgs_core.budget import quantized
+    from symgs_core.pipeline.budget import quantized
 
     scene = _random_scene(700, degree, seed=degree)
     steps = QuantSteps().scaled(3.0)

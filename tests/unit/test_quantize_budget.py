@@ -7,11 +7,12 @@ import math
 import pytest
 import torch
 
-from symgs_core.budget import SHARES, fit_quantization, psnr_to_mse, quantized, split_budget
 from symgs_core.codec.steps import QuantSteps
-from symgs_core.optimize import LevelState, evaluate
+from symgs_core.metrics import psnr_to_mse
+from symgs_core.pipeline.budget import SHARES, fit_quantization, quantized, split_budget
+from symgs_core.pipeline.state import LevelState
 from symgs_core.synthetic import synthetic_scene
-from symgs_core.views import self_supervised_views
+from symgs_core.views import evaluate, self_supervised_views
 
 
 def test_stage_floors_are_cumulative_shares_of_the_excess_mse() -> None:

@@ -8,7 +8,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from symgs_core.budget import (
+from symgs_core.codec.steps import QuantSteps, register_quantized
+from symgs_core.pipeline.budget import (
     _ATTRIBUTES,
     archive_bytes,
     balance_steps,
@@ -18,11 +19,10 @@ from symgs_core.budget import (
     palette_start,
     quantized,
 )
-from symgs_core.codec.steps import QuantSteps, register_quantized
-from symgs_core.optimize import LevelState, evaluate
-from symgs_core.stages import write_archive
+from symgs_core.pipeline.encode import write_archive
+from symgs_core.pipeline.state import LevelState
 from symgs_core.synthetic import synthetic_scene
-from symgs_core.views import self_supervised_views
+from symgs_core.views import evaluate, self_supervised_views
 
 FLOOR = 42.0
 # Positions far finer than their share of the error: a start that balancing has to move.

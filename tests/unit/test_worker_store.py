@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from api_schemas import JobParams
-from service.stack import LocalStack
+from service.cli.stack import LocalStack
 from worker.celery_app import make_celery
 from worker.maintenance import SweepReport, expire, recover_lost, reroute_stranded
 from worker.runner import headline, mark_failed

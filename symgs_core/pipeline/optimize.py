@@ -1,32 +1,27 @@
 """Mirror-aware optimisation of one level.
 
-The rendered scene is the stored working set expanded through every mirror (``hierarchy.expand``); Adam trains the
+The rendered scene is the stored working set expanded through every mirror (``mirror.expand``); Adam trains the
 working set's attributes and the newest mirror's plane, with the 3DGS loss 0.8 L1 + 0.2 (1 - SSIM) and the 3DGS
 learning rates (positions scaled by the scene's extent).
 """
 
 from __future__ import annotations
 
-import math
 import random
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .cameras import Camera
-from .hierarchy import expand
-from .metrics import ssim
-from .progress import Cancelled, StopFn
-from .render import render
-from .scene import GaussianScene
+from ..cameras import Camera
+from ..metrics import ssim
+from ..mirror import expand
+from ..progress import Cancelled, StopFn
+from ..render import render
+from ..scene import GaussianScene
+from .state import LevelState
 
 LAMBDA_DSSIM = 0.2
-
-
-def mse_to_psnr(mse: float) -> float:
-    """PSNR in dB of a mean squared error on [0, 1] images; +inf for a perfect match."""
-    return -10.0 * math.log10(mse) if mse > 0 else math.inf
 
 
 @dataclass(frozen=True)
@@ -42,55 +37,9 @@ class LearningRates:
     plane: float = 1e-3
 
 
-@dataclass
-class LevelState:
-    """What a level trains and what the archive stores: the working set, the planes (level 0 first), the bits."""
-
-    stored: GaussianScene
-    normals: Tensor  # [L+1, 3]
-    offsets: Tensor  # [L+1]
-    bits: Tensor  # [|S|, L+1] bool
-
-    @staticmethod
-    def plain(scene: GaussianScene) -> LevelState:
-        """No mirror: the scene stored as it is."""
-        dev, dtype = scene.device, scene.means.dtype
-        return LevelState(
-            scene,
-            torch.zeros(0, 3, device=dev, dtype=dtype),
-            torch.zeros(0, device=dev, dtype=dtype),
-            torch.zeros(len(scene), 0, dtype=torch.bool, device=dev),
-        )
-
-    def expanded(self) -> GaussianScene:
-        return expand(self.stored, self.normals, self.offsets, self.bits)[0]
-
-    def detach(self) -> LevelState:
-        return LevelState(
-            self.stored.detach().clone(),
-            self.normals.detach().clone(),
-            self.offsets.detach().clone(),
-            self.bits.clone(),
-        )
-
-
 def loss_fn(image: Tensor, target: Tensor) -> Tensor:
     l1 = (image - target).abs().mean()
     return (1.0 - LAMBDA_DSSIM) * l1 + LAMBDA_DSSIM * (1.0 - ssim(image, target))
-
-
-@torch.no_grad()
-def evaluate(scene: GaussianScene, views: list[tuple[Camera, Tensor]], background: Tensor) -> tuple[float, float]:
-    """Mean PSNR (dB, from the mean MSE over views) and mean SSIM of ``scene`` against the views' targets."""
-    if not views:
-        raise ValueError("evaluate needs at least one view")
-    mse, ssims = 0.0, []
-    for cam, target in views:
-        image = render(scene, cam, background).image
-        mse += float(((image - target) ** 2).mean())
-        ssims.append(float(ssim(image, target)))
-    mse /= len(views)
-    return mse_to_psnr(mse), sum(ssims) / len(ssims)
 
 
 def optimize_level(

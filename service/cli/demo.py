@@ -9,9 +9,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from .cli import CliError
-from .client import SymgsClient
-from .progress_view import follow, jobs_table
+from ..client import SymgsClient
+from .parser import CliError
+from .progress import follow, jobs_table
 from .stack import LocalStack, StackError
 
 # Small enough to finish in about a minute on two CPU cores, large enough to find and keep a mirror.

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .cli import CliError
+from .parser import CliError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -138,10 +138,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     import torch
 
     from symgs_core.export import import_scene
-    from symgs_core.optimize import evaluate
     from symgs_core.pipeline import decompress
     from symgs_core.ply import load_scene
-    from symgs_core.views import self_supervised_views
+    from symgs_core.views import evaluate, self_supervised_views
 
     for path in (args.reference, args.candidate):
         if not path.is_file():

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from api_schemas import Job, JobEvent
 
-from .client import SymgsClient
+from ..client import SymgsClient
 
 
 def job_progress(console: Console) -> Progress:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.cli import CliError
+from .parser import CliError
 
 DEFAULT_ORBIT_SIZE = 512
 DEFAULT_ORBIT_VIEWS = 8

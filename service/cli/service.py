@@ -58,14 +58,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers)
+    uvicorn.run("service.api.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers)
     return 0
 
 
 def worker(args: argparse.Namespace) -> int:
     from worker.launch import run_worker
 
-    from .cli import CliError
+    from .parser import CliError
 
     try:
         run_worker(args.mode, concurrency=args.concurrency, loglevel=args.loglevel)
@@ -75,7 +75,7 @@ def worker(args: argparse.Namespace) -> int:
 
 
 def _params(text: str | None) -> dict | None:
-    from .cli import CliError
+    from .parser import CliError
 
     if text is None:
         return None
@@ -90,7 +90,7 @@ def _params(text: str | None) -> dict | None:
 
 
 def _client(args: argparse.Namespace):  # noqa: ANN202 - SymgsClient, imported lazily
-    from .client import SymgsClient
+    from ..client import SymgsClient
 
     return SymgsClient(args.server, args.api_key)
 
@@ -99,8 +99,8 @@ def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI erro
     def wrapped(args: argparse.Namespace) -> int:
         import httpx
 
-        from .cli import CliError
-        from .client import ApiClientError
+        from ..client import ApiClientError
+        from .parser import CliError
 
         try:
             return fn(args)
@@ -116,9 +116,9 @@ def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI erro
 def submit(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from .cli import CliError
-    from .client import zip_folder
-    from .progress_view import follow, jobs_table
+    from ..client import zip_folder
+    from .parser import CliError
+    from .progress import follow, jobs_table
 
     if args.images is not None and len(args.scenes) != 1:
         raise CliError("--images belongs to one scene; submit scenes with datasets one at a time")
@@ -152,7 +152,7 @@ def submit(args: argparse.Namespace) -> int:
 def status(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from .progress_view import jobs_table
+    from .progress import jobs_table
 
     with _client(args) as client:
         job = client.job(args.job_id)
@@ -168,7 +168,7 @@ def status(args: argparse.Namespace) -> int:
 
 @_api_errors
 def fetch(args: argparse.Namespace) -> int:
-    from .cli import CliError
+    from .parser import CliError
 
     with _client(args) as client:
         job = client.job(args.job_id)

@@ -19,7 +19,7 @@ from worker.settings import Settings
 from worker.storage import storage_from_settings
 from worker.store import JobStore
 
-from .dashboard.routes import router as dashboard_router
+from ..dashboard.routes import router as dashboard_router
 from .errors import install_handlers
 from .metrics import make_registry
 from .routes import events, jobs, ops, results

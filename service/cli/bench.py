@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .cli import CliError
+from .parser import CliError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

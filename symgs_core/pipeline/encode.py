@@ -20,17 +20,18 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from torch import Tensor
 
+from ..codec import ArchiveContents, coding_order, encode_archive
+from ..codec.frames import canonical_frames
+from ..codec.order import grid_cells
+from ..codec.palette import RowWeights
+from ..codec.registry import archive_codec
+from ..codec.steps import QuantSteps, register_quantized
+from ..config import CompressConfig
+from ..mirror import Plane
+from ..views import evaluate
 from .budget import SHARES, archive_bytes, extent_of, fit_steps, split_budget
-from .codec import ArchiveContents, coding_order, encode_archive
-from .codec.frames import canonical_frames
-from .codec.order import grid_cells
-from .codec.palette import RowWeights
-from .codec.registry import archive_codec
-from .codec.steps import QuantSteps, register_quantized
-from .config import CompressConfig
-from .mirror import Plane
-from .optimize import LevelState, evaluate
 from .prune import contributions, prune, reduce_sh
+from .state import LevelState
 
 # Starting steps of each preset; the search then scales them to spend the preset's budget.
 PRESET_STEPS = {"small": QuantSteps().scaled(2.0), "balanced": QuantSteps(), "high": QuantSteps().scaled(0.5)}

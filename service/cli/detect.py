@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.cli import CliError
+from .parser import CliError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import torch
 
-from .cameras import COORDINATE_CONVENTION, scene_bounds
-from .codec import decode_archive, expand_archive
-from .config import CompressConfig
+from ..cameras import COORDINATE_CONVENTION, scene_bounds
+from ..codec import decode_archive, expand_archive
+from ..config import CompressConfig
+from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
+from ..scene import GaussianScene
+from ..views import ViewSet, dataset_views, evaluate, self_supervised_views
+from .encode import mirror_floor, reduce_and_encode, write_archive
 from .levels import LevelRecord, run_levels
-from .optimize import LevelState, evaluate
-from .progress import Cancelled, ProgressEvent, ProgressFn, StopFn
-from .scene import GaussianScene
-from .stages import mirror_floor, reduce_and_encode, write_archive
-from .views import ViewSet, dataset_views, self_supervised_views
+from .state import LevelState
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
 _STAGES = {
@@ -67,7 +67,7 @@ class _Reporter:
 def _load(scene: GaussianScene | str | Path) -> tuple[GaussianScene, int, str]:
     if isinstance(scene, GaussianScene):
         return scene, 0, "scene"
-    from .ply import load_scene
+    from ..ply import load_scene
 
     path = Path(scene)
     return load_scene(path), path.stat().st_size, path.name
@@ -195,7 +195,7 @@ def compress(
     }
     images: dict[str, bytes] = {}
     if config.pictures:
-        from .pictures import job_pictures
+        from ..pictures import job_pictures
 
         t0 = time.perf_counter()
         report("evaluate", 0.5, "drawing pictures")

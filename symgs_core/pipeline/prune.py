@@ -21,10 +21,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .cameras import Camera
-from .hierarchy import expand
-from .optimize import LevelState, evaluate, optimize_level
-from .render import render
+from ..cameras import Camera
+from ..mirror import expand
+from ..render import render
+from ..views import evaluate
+from .optimize import optimize_level
+from .state import LevelState
 
 C0 = 0.28209479177387814
 

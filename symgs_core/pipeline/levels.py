@@ -11,12 +11,13 @@ from pathlib import Path
 
 import torch
 
-from .config import CompressConfig
+from ..config import CompressConfig
+from ..mirror import Plane
+from ..scene import GaussianScene
+from ..views import ViewSet, evaluate
 from .gating import colour_mismatch, gated
-from .mirror import Plane
-from .optimize import LevelState, evaluate, optimize_level
-from .scene import GaussianScene
-from .views import ViewSet
+from .optimize import optimize_level
+from .state import LevelState
 
 # Colour-agreement gates (largest RGB channel difference) tried after the geometric membership, loosest first.
 GATES = (0.3, 0.2, 0.1)
@@ -232,7 +233,7 @@ def run_levels(
     ``size_of`` measures a state's archive where fewer Gaussians need not mean fewer bytes (a lossless archive of
     a scene whose values sit on a grid: fine-tuned values leave it); a level must then also shrink it.
     """
-    from .detect import DetectConfig, detect
+    from ..detect import DetectConfig, detect
 
     state, records, done = LevelState.plain(source), [], False
     if checkpoint is not None:

@@ -12,9 +12,9 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from .mirror import reflect
-from .scene import GaussianScene
-from .sh import C0
+from ..mirror import reflect
+from ..scene import GaussianScene
+from ..sh import C0
 
 # Neighbours whose colours are averaged: enough to smooth one noisy Gaussian, few enough to stay local.
 _NEIGHBOURS = 4

@@ -11,11 +11,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.p
 
 # Modules that define `register(subparsers)`; each subcommand sets `func(args) -> int` as its handler.
 COMMAND_MODULES = [
-    "service.cmd_scene",  # info, render
-    "service.cmd_detect",  # detect
-    "service.cmd_codec",  # compress, decompress, evaluate
-    "service.cmd_bench",  # bench
-    "service.cmd_service",  # serve, worker, submit, status, fetch, demo
+    "service.cli.scene",  # info, render
+    "service.cli.detect",  # detect
+    "service.cli.codec",  # compress, decompress, evaluate
+    "service.cli.bench",  # bench
+    "service.cli.service",  # serve, worker, submit, status, fetch, demo
 ]
 
 

@@ -22,23 +22,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .cameras import Camera
-from .codec.order import coding_order, grid_cells
-from .codec.quantize import band_slices
-from .codec.steps import QuantSteps
-from .optimize import LevelState, evaluate
-from .scene import GaussianScene
+from ..cameras import Camera
+from ..codec.order import coding_order, grid_cells
+from ..codec.quantize import band_slices
+from ..codec.steps import QuantSteps
+from ..metrics import mse_to_psnr, psnr_to_mse
+from ..scene import GaussianScene
+from ..views import evaluate
+from .state import LevelState
 
 # Mirrors lead: on playbot (125k) a 60% share kept a level that 40% refused, and the archive came out 9% smaller.
 SHARES = {"mirrors": 0.6, "pruning": 0.7, "sh_reduction": 0.8, "quantization": 1.0}
-
-
-def psnr_to_mse(psnr: float) -> float:
-    return 0.0 if math.isinf(psnr) and psnr > 0 else 10.0 ** (-psnr / 10.0)
-
-
-def mse_to_psnr(mse: float) -> float:
-    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
 
 
 def split_budget(floor: float, reference: float) -> dict[str, float]:
