@@ -44,11 +44,9 @@ class JobMetrics(BaseModel):
 class JobLinks(BaseModel):
     self: str
     events: str
-    result: str
-    result_ply: str
-    result_spz: str
-    result_compressed_ply: str
+    result: str = Field(description="the .symgs archive")
     report: str
+    exports: dict[str, str] = Field(description="the decoded scene in each export format, by format name")
 
 
 class SceneInfo(BaseModel):
@@ -93,10 +91,11 @@ class Job(BaseModel):
                         "self": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596",
                         "events": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/events",
                         "result": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result",
-                        "result_ply": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.ply",
-                        "result_spz": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.spz",
-                        "result_compressed_ply": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.compressed.ply",
                         "report": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/report",
+                        "exports": {
+                            "ply": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.ply",
+                            "spz": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.spz",
+                        },
                     },
                 }
             ]
@@ -117,8 +116,8 @@ class Job(BaseModel):
     metrics: JobMetrics | None = None
     artifacts: list[str] = Field(
         default_factory=list,
-        description="result files of a succeeded job: result.symgs, result.ply, result.spz, result.compressed.ply, "
-        "report.json, charts/<name>.png",
+        description="result files of a succeeded job: result.symgs, report.json, charts/<name>.png and "
+        "result<extension> for each export format",
     )
     error: JobError | None = None
     attempts: int = Field(0, description="runs started; above 1 when a worker was lost and the job resumed")

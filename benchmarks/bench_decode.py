@@ -21,11 +21,11 @@ import torch
 
 from symgs_core.codec import QuantSteps, register_quantized
 from symgs_core.codec.frames import canonical_frames
-from symgs_core.export import ply_bytes
 from symgs_core.pipeline import decompress
 from symgs_core.pipeline.budget import palette_start
 from symgs_core.pipeline.encode import write_archive
 from symgs_core.pipeline.state import LevelState
+from symgs_core.ply import ply_bytes
 from symgs_core.scene import GaussianScene
 
 PLAYBOT = Path(__file__).resolve().parents[1].parent / "shared/data/playbot_cc_by_sa3d/playbot_lod2_125k_sh2.ply"

@@ -23,41 +23,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from .ply_header import DC, GEOMETRY, NORMALS, ROTATIONS, SCALES, PlyError, read_header
 from .scene import SH_REST_COUNT, GaussianScene
 
 # logit(1 - 1/512) and logit(1/512): the opacity range of an 8-bit alpha that avoids 0 and 1.
 OPACITY_LOGIT_MAX = float(np.float32(math.log(511.0)))
 OPACITY_LOGIT_MIN = -OPACITY_LOGIT_MAX
-
-_MAX_HEADER_BYTES = 1 << 20
-_GEOMETRY = ("x", "y", "z")
-_NORMALS = ("nx", "ny", "nz")
-_DC = ("f_dc_0", "f_dc_1", "f_dc_2")
-_SCALES = ("scale_0", "scale_1", "scale_2")
-_ROTS = ("rot_0", "rot_1", "rot_2", "rot_3")
-REQUIRED = _GEOMETRY + _DC + ("opacity",) + _SCALES + _ROTS
-
-# PLY scalar types: byte size and numpy kind.
-_TYPES = {
-    "char": (1, "i"), "int8": (1, "i"), "uchar": (1, "u"), "uint8": (1, "u"),
-    "short": (2, "i"), "int16": (2, "i"), "ushort": (2, "u"), "uint16": (2, "u"),
-    "int": (4, "i"), "int32": (4, "i"), "uint": (4, "u"), "uint32": (4, "u"),
-    "float": (4, "f"), "float32": (4, "f"), "double": (8, "f"), "float64": (8, "f"),
-}  # fmt: skip
-_FORMATS = {"ascii", "binary_little_endian", "binary_big_endian"}
-
-
-class PlyError(ValueError):
-    """A PLY file that cannot be read as a Gaussian scene; ``code`` says why in a machine-readable word.
-
-    Codes: not_ply, unsupported_format, malformed, missing_property, bad_sh_count, truncated, non_finite,
-    too_many_gaussians.
-    """
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-
 
 @dataclass
 class PlyReport:
@@ -84,116 +55,9 @@ class PlyReport:
         return asdict(self)
 
 
-@dataclass
-class _Element:
-    name: str
-    count: int
-    properties: list[tuple[str, str, str | None]]  # (name, value type, list length type or None)
-
-    def min_row_bytes(self, ascii: bool) -> int:
-        """The fewest bytes a row can take: exact for binary rows without lists (a list may be empty)."""
-        if ascii:
-            return 2 * len(self.properties)  # every value takes at least one character and one separator
-        return sum(_TYPES[length or value][0] for _, value, length in self.properties)
-
-
-@dataclass
-class _Header:
-    format: str
-    elements: list[_Element]
-    comments: list[str]
-    size: int  # bytes up to and including the end_header line
-
-
-def _parse_header(head: bytes, path: Path) -> _Header:
-    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
-        raise PlyError("not_ply", f"{path.name}: not a PLY file (it does not start with 'ply')")
-    end = head.find(b"end_header")
-    if end < 0:
-        raise PlyError("not_ply", f"{path.name}: no 'end_header' in the first {_MAX_HEADER_BYTES} bytes")
-    newline = head.find(b"\n", end)
-    if newline < 0:
-        raise PlyError("truncated", f"{path.name}: the file ends inside its header")
-    try:
-        lines = head[:end].decode("ascii").splitlines()[1:]
-    except UnicodeDecodeError as exc:
-        raise PlyError("malformed", f"{path.name}: header is not ASCII text ({exc})") from None
-
-    fmt = None
-    elements: list[_Element] = []
-    comments: list[str] = []
-    for number, raw in enumerate(lines, start=2):
-        words = raw.split()
-        if not words:
-            continue
-        keyword = words[0]
-        bad = PlyError("malformed", f"{path.name}: header line {number} is malformed: {raw.strip()!r}")
-        if keyword == "comment":
-            comments.append(raw.strip()[len("comment") :].strip())
-        elif keyword == "obj_info":
-            continue
-        elif keyword == "format":
-            if len(words) != 3:
-                raise bad
-            fmt = words[1]
-            if fmt not in _FORMATS:
-                raise PlyError("unsupported_format", f"{path.name}: unknown PLY format {fmt!r}")
-        elif keyword == "element":
-            if len(words) != 3 or not words[2].isdigit():
-                raise bad
-            elements.append(_Element(words[1], int(words[2]), []))
-        elif keyword == "property":
-            if not elements:
-                raise bad
-            if len(words) == 3 and words[1] in _TYPES:
-                prop = (words[2], words[1], None)
-            elif len(words) == 5 and words[1] == "list" and words[2] in _TYPES and words[3] in _TYPES:
-                prop = (words[4], words[3], words[2])
-            else:
-                raise bad
-            if any(p[0] == prop[0] for p in elements[-1].properties):
-                raise PlyError("malformed", f"{path.name}: property {prop[0]!r} appears twice")
-            elements[-1].properties.append(prop)
-        else:
-            raise bad
-    if fmt is None:
-        raise PlyError("malformed", f"{path.name}: header has no 'format' line")
-    return _Header(fmt, elements, comments, newline + 1)
-
-
-def _check_size(header: _Header, vertex: _Element, file_size: int, path: Path) -> None:
-    """Refuse headers that claim more rows than the file can hold, before plyfile allocates for them."""
-    body = file_size - header.size
-    ascii = header.format == "ascii"
-    needed = sum(e.count * e.min_row_bytes(ascii) for e in header.elements)
-    if needed > body:
-        others = "" if header.elements == [vertex] else " and its other elements"
-        raise PlyError(
-            "truncated",
-            f"{path.name}: header claims {vertex.count} vertices{others}, at least {needed} bytes of data, "
-            f"but the file holds only {body} bytes after the header",
-        )
-
-
-def _rest_names(names: list[str], path: Path) -> list[str]:
-    rest = [n for n in names if n.startswith("f_rest_")]
-    expected = {f"f_rest_{i}" for i in range(len(rest))}
-    if set(rest) != expected:
-        raise PlyError(
-            "bad_sh_count",
-            f"{path.name}: f_rest properties are not numbered 0..{len(rest) - 1} without gaps: {sorted(rest)[:8]}",
-        )
-    if len(rest) % 3 != 0 or len(rest) // 3 not in SH_REST_COUNT.values():
-        raise PlyError(
-            "bad_sh_count",
-            f"{path.name}: {len(rest)} f_rest properties match no SH degree (expected 0, 9, 24 or 45 for degrees 0..3)",
-        )
-    return [f"f_rest_{i}" for i in range(len(rest))]
-
-
 def _to_scene(data: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianScene, dict[str, int]]:
     """Scene from the structured vertex array, after the finiteness checks and repairs."""
-    order = [*_GEOMETRY, *_DC, *rest, "opacity", *_SCALES, *_ROTS]
+    order = [*GEOMETRY, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
     n = len(data)
     # One native-order float32 matrix [N, P]; float32 input keeps its exact bits.
     values = np.empty((n, len(order)), dtype=np.float32)
@@ -242,27 +106,8 @@ def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None
     from plyfile import PlyData, PlyParseError
 
     path = Path(path)
-    with open(path, "rb") as f:
-        head = f.read(_MAX_HEADER_BYTES)
-    header = _parse_header(head, path)
-    vertex = next((e for e in header.elements if e.name == "vertex"), None)
-    if vertex is None:
-        raise PlyError("missing_property", f"{path.name}: no 'vertex' element")
-    names = [p[0] for p in vertex.properties]
-    missing = [n for n in REQUIRED if n not in names]
-    if missing:
-        raise PlyError("missing_property", f"{path.name}: missing required properties {', '.join(missing)}")
-    rest = _rest_names(names, path)
-    used = set(REQUIRED) | set(rest)
-    for name, value_type, length in vertex.properties:
-        if name in used and (length is not None or _TYPES[value_type][1] != "f"):
-            kind = "a list" if length is not None else value_type
-            raise PlyError("unsupported_format", f"{path.name}: property {name!r} is {kind}, expected float")
-    if max_gaussians is not None and vertex.count > max_gaussians:
-        raise PlyError(
-            "too_many_gaussians", f"{path.name}: {vertex.count} Gaussians exceed the limit of {max_gaussians}"
-        )
-    _check_size(header, vertex, path.stat().st_size, path)
+    header = read_header(path, max_gaussians=max_gaussians)
+    names, rest = header.properties, list(header.rest)
 
     try:
         data = PlyData.read(str(path))["vertex"].data
@@ -276,9 +121,9 @@ def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None
         sh_degree=scene.sh_degree,
         format=header.format,
         properties=names,
-        ignored=[n for n in names if n not in used],
+        ignored=[n for n in names if n not in header.used],
         repairs=repairs,
-        comments=header.comments,
+        comments=list(header.comments),
     )
     return scene, report
 
@@ -292,28 +137,27 @@ def graphdeco_properties(sh_degree: int) -> list[str]:
     """Property names of the graphdeco layout for ``sh_degree``, in file order."""
     k = SH_REST_COUNT[sh_degree]
     rest = [f"f_rest_{i}" for i in range(3 * k)]
-    return [*_GEOMETRY, *_NORMALS, *_DC, *rest, "opacity", *_SCALES, *_ROTS]
+    return [*GEOMETRY, *NORMALS, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
+
+
+def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
+    """The binary little-endian graphdeco PLY of ``scene`` (float32, zero normals).
+
+    Built as one float32 matrix: a million Gaussians take a fraction of a second, where a structured array per
+    property takes seconds.
+    """
+    n, k = len(scene), scene.sh_rest.shape[1]
+    t = {name: v.detach().to("cpu", torch.float32) for name, v in scene.tensors().items()}
+    flat = torch.cat(
+        [t["means"], torch.zeros(n, 3), t["sh_dc"], t["sh_rest"].transpose(1, 2).reshape(n, 3 * k),
+         t["opacities"][:, None], t["scales"], t["quats"]],
+        dim=1,
+    )  # fmt: skip
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
+    header += [f"property float {name}" for name in graphdeco_properties(scene.sh_degree)] + ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii") + flat.numpy().astype("<f4", copy=False).tobytes()
 
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike[str], *, comments: tuple[str, ...] = ()) -> None:
-    """Write ``scene`` as a binary little-endian graphdeco PLY (float32, zero normals)."""
-    from plyfile import PlyData, PlyElement
-
-    n, k = len(scene), scene.sh_rest.shape[1]
-    t = {name: v.detach().to("cpu", torch.float32).numpy() for name, v in scene.tensors().items()}
-    columns = [
-        t["means"],
-        np.zeros((n, 3), dtype=np.float32),
-        t["sh_dc"],
-        t["sh_rest"].transpose(0, 2, 1).reshape(n, 3 * k),  # [N, K, 3] -> channel-major
-        t["opacities"][:, None],
-        t["scales"],
-        t["quats"],
-    ]
-    flat = np.concatenate(columns, axis=1)
-    names = graphdeco_properties(scene.sh_degree)
-    rows = np.empty(n, dtype=[(name, "<f4") for name in names])
-    for i, name in enumerate(names):
-        rows[name] = flat[:, i]
-    element = PlyElement.describe(rows, "vertex")
-    PlyData([element], text=False, byte_order="<", comments=list(comments)).write(str(path))
+    """Write ``scene`` to ``path`` as ``ply_bytes`` does."""
+    Path(path).write_bytes(ply_bytes(scene, comments=comments))

@@ -106,7 +106,7 @@ def headline(report: dict) -> tuple[list[dict], dict]:
 
 
 def _write_results(storage: Storage, job_id: str, result) -> None:  # noqa: ANN001 - symgs_core CompressResult
-    from symgs_core.export import ply_bytes, write_compressed_ply, write_spz
+    from symgs_core.export.formats import EXPORTS
     from symgs_core.pipeline import decompress
 
     storage.write_artifact(job_id, "result.symgs", result.archive)
@@ -115,9 +115,8 @@ def _write_results(storage: Storage, job_id: str, result) -> None:  # noqa: ANN0
         storage.write_artifact(job_id, f"charts/{name}.png", png)
     # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
     decoded = decompress(result.archive)
-    storage.write_artifact(job_id, "result.ply", ply_bytes(decoded))
-    storage.write_artifact(job_id, "result.spz", write_spz(decoded))
-    storage.write_artifact(job_id, "result.compressed.ply", write_compressed_ply(decoded))
+    for fmt in EXPORTS:
+        storage.write_artifact(job_id, fmt.artifact, fmt.write(decoded))
 
 
 def run_job(

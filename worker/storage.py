@@ -5,8 +5,8 @@ Layout under the root (a directory both sides mount)::
     staging/<token>/            an upload being received and checked, before it becomes a job
     jobs/<id>/upload/           scene.ply and images/ (the extracted dataset), as accepted
     jobs/<id>/checkpoints/      per-level checkpoints of the pipeline; a rerun resumes from them
-    jobs/<id>/result/           result.symgs, result.ply, result.spz, result.compressed.ply, report.json,
-                                charts/<name>.png
+    jobs/<id>/result/           result.symgs, report.json, charts/<name>.png, and result<extension> for each
+                                export format (``symgs_core.export.formats``)
 
 Results are written under fixed names, atomically (write then rename), so a rerun overwrites and a reader never
 sees half a file.
@@ -22,11 +22,12 @@ import uuid
 from abc import ABC, abstractmethod
 from pathlib import Path
 
+from symgs_core.export.formats import EXPORTS
+
 from .settings import Settings
 
-_ARTIFACT = re.compile(
-    r"^(result\.symgs|result\.ply|result\.spz|result\.compressed\.ply|report\.json|charts/[A-Za-z0-9_-]{1,64}\.png)$"
-)
+_EXPORTED = "|".join(re.escape(fmt.artifact) for fmt in EXPORTS)
+_ARTIFACT = re.compile(rf"^(result\.symgs|{_EXPORTED}|report\.json|charts/[A-Za-z0-9_-]{{1,64}}\.png)$")
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 
 

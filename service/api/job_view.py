@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 from api_schemas import Job, JobError, JobLinks
+from symgs_core.export.formats import EXPORTS
 from worker.store import JobRecord, JobStore
 
 from .errors import not_found
@@ -48,9 +49,8 @@ def public_job(record: JobRecord) -> Job:
         finished_at=record.finished_at,
         updated_at=record.updated_at,
         links=JobLinks(
-            self=base, events=f"{base}/events", result=f"{base}/result", result_ply=f"{base}/result.ply",
-            result_spz=f"{base}/result.spz", result_compressed_ply=f"{base}/result.compressed.ply",
-            report=f"{base}/report",
+            self=base, events=f"{base}/events", result=f"{base}/result", report=f"{base}/report",
+            exports={fmt.name: f"{base}/{fmt.artifact}" for fmt in EXPORTS},
         ),  # fmt: skip
     )
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import uuid
 from dataclasses import dataclass
+from pathlib import Path
 
 from celery import Celery
 from pydantic import ValidationError
@@ -11,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 
 from api_schemas import JobParams
+from symgs_core.ply_header import PlyError, PlyHeader, read_header
 from worker.celery_app import send_compress
 from worker.routing import choose_queue
 from worker.settings import Settings
@@ -19,7 +21,6 @@ from worker.store import JobRecord, JobStore
 
 from .archives import ArchiveLimits, extract_dataset
 from .errors import ApiError
-from .ply_header import check_ply
 from .uploads import Upload, receive_upload
 
 
@@ -37,12 +38,24 @@ def parse_params(text: str | None) -> JobParams:
         raise ApiError(422, "bad_params", "params: " + "; ".join(parts)) from None
 
 
+def check_scene(path: Path, *, max_gaussians: int, name: str) -> PlyHeader:
+    """The uploaded scene's header, checked by the rules the worker's reader applies (413 for too many Gaussians,
+    422 otherwise); a scene with no Gaussians is refused too, as there is nothing to compress."""
+    try:
+        header = read_header(path, max_gaussians=max_gaussians, name=name)
+    except PlyError as exc:
+        raise ApiError(413 if exc.code == "too_many_gaussians" else 422, exc.code, str(exc)) from None
+    if header.count == 0:
+        raise ApiError(422, "empty_scene", f"{name}: the scene has no Gaussians")
+    return header
+
+
 def _check(upload: Upload, settings: Settings) -> tuple[JobParams, dict, dict | None, str | None]:
     """The blocking checks, run in a worker thread: params, the PLY header, the dataset archive."""
     params = parse_params(upload.params)
-    header = check_ply(upload.scene, max_gaussians=settings.max_gaussians, name=upload.scene_filename)
+    header = check_scene(upload.scene, max_gaussians=settings.max_gaussians, name=upload.scene_filename)
     scene = {
-        "filename": upload.scene_filename, "bytes": upload.scene_bytes, "gaussians": header.gaussians,
+        "filename": upload.scene_filename, "bytes": upload.scene_bytes, "gaussians": header.count,
         "sh_degree": header.sh_degree,
     }  # fmt: skip
     if upload.images is None:

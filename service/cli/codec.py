@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from symgs_core.export.formats import extensions
+
 from .parser import CliError
 
 
@@ -32,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     d = sub.add_parser("decompress", help="decode a .symgs archive to a scene file (format by extension)")
     d.add_argument("archive", type=Path)
-    d.add_argument("-o", "--output", type=Path, required=True, help="output scene: .ply, .spz or .compressed.ply")
+    d.add_argument("-o", "--output", type=Path, required=True, help=f"output scene, by extension: {extensions()}")
     d.add_argument("--spz-version", type=int, choices=[2, 3, 4], default=3, help=".spz version to write (default 3)")
     d.set_defaults(func=_decompress)
     register_evaluate(sub)
@@ -105,12 +107,12 @@ def _compress(args: argparse.Namespace) -> int:
 def _decompress(args: argparse.Namespace) -> int:
     # The codec alone, not the pipeline: decoding needs no renderer, and skipping its imports saves a quarter second.
     from symgs_core.codec import ArchiveError, decode_archive, expand_archive
-    from symgs_core.export import export_scene, format_of
+    from symgs_core.export.formats import by_path
 
     if not args.archive.is_file():
         raise CliError(f"archive not found: {args.archive}")
     try:
-        fmt = format_of(args.output)
+        fmt = by_path(args.output)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     try:
@@ -118,16 +120,16 @@ def _decompress(args: argparse.Namespace) -> int:
     except ArchiveError as exc:
         raise CliError(f"{args.archive}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    export_scene(scene, args.output, fmt, version=args.spz_version)
-    version = f" v{args.spz_version}" if fmt == "spz" else ""
-    print(f"{args.output}: {fmt}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
+    args.output.write_bytes(fmt.write(scene, version=args.spz_version))
+    version = f" v{args.spz_version}" if "version" in fmt.options else ""
+    print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0
 
 
 def register_evaluate(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="PSNR/SSIM of a decoded scene against renders of the original")
     e.add_argument("reference", type=Path, help="the uncompressed scene (.ply)")
-    e.add_argument("candidate", type=Path, help="a .symgs archive or a decoded .ply, .spz or .compressed.ply")
+    e.add_argument("candidate", type=Path, help=f"a .symgs archive or a decoded scene: {extensions()}")
     e.add_argument("--views", type=int, default=8, help="held-out cameras around the scene")
     e.add_argument("--resolution", type=int, default=256)
     e.add_argument("--json", action="store_true", help="print the figures as JSON")

@@ -12,6 +12,9 @@ No entropy coding; axes as the graphdeco PLY (RDF).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -182,3 +185,7 @@ def read_compressed_ply(data: bytes) -> GaussianScene:
         sh_dc=f32((colors - 0.5) / C0), sh_rest=f32(rest),
     )  # fmt: skip
 
+
+def load_compressed_ply(path: str | os.PathLike[str]) -> GaussianScene:
+    """``read_compressed_ply`` of the file at ``path``."""
+    return read_compressed_ply(Path(path).read_bytes())

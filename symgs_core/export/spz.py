@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import gzip
 import math
+import os
 import struct
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -199,3 +201,8 @@ def read_spz(data: bytes) -> GaussianScene:
         means=f32(means), quats=f32(wxyz), scales=f32(scales), opacities=f32(logits),
         sh_dc=f32(colors), sh_rest=f32(sh),
     )  # fmt: skip
+
+
+def load_spz(path: str | os.PathLike[str]) -> GaussianScene:
+    """``read_spz`` of the file at ``path``."""
+    return read_spz(Path(path).read_bytes())

@@ -9,9 +9,13 @@ import pytest
 import torch
 
 from service.api.errors import ApiError
-from service.api.ply_header import check_ply
+from service.api.submission import check_scene
 from symgs_core.ply import PlyError, read_scene, save_scene
 from symgs_core.scene import GaussianScene
+
+
+def check_ply(path: Path, max_gaussians: int):  # noqa: ANN201 - PlyHeader
+    return check_scene(path, max_gaussians=max_gaussians, name=path.name)
 
 
 def _scene(n: int, k: int) -> GaussianScene:
@@ -27,8 +31,8 @@ def _scene(n: int, k: int) -> GaussianScene:
 def test_accepts_what_the_reader_reads(tmp_path: Path, k: int, degree: int) -> None:
     path = tmp_path / "s.ply"
     save_scene(_scene(37, k), path)
-    header = check_ply(path, max_gaussians=1000)
-    assert (header.format, header.gaussians, header.sh_degree) == ("binary_little_endian", 37, degree)
+    header = check_ply(path, 1000)
+    assert (header.format, header.count, header.sh_degree) == ("binary_little_endian", 37, degree)
     assert read_scene(path)[1].count == 37
 
 
@@ -44,7 +48,10 @@ def _edit(path: Path, old: bytes, new: bytes) -> None:
     [
         (b"element vertex 37", b"element vertex 38", 422, "truncated"),
         (b"element vertex 37", b"element vertex 1001", 413, "too_many_gaussians"),
-        (b"element vertex 37", b"element vertex 0", 422, "empty_scene"),
+        (b"element vertex 37", b"element vertex 0", 422, "trailing_data"),
+        (b"element vertex 37", b"element vertex 20", 422, "trailing_data"),
+        (b"element vertex", b"element face 1000000000000\nproperty list uchar int vertex_indices\nelement vertex",
+         422, "truncated"),
         (b"element vertex 37", b"element vertex -3", 422, "malformed"),
         (b"property float f_rest_8\n", b"", 422, "bad_sh_count"),
         (b"property float f_rest_3\n", b"property float f_rest_30\n", 422, "bad_sh_count"),
@@ -62,7 +69,7 @@ def test_refuses_bad_headers(tmp_path: Path, old: bytes, new: bytes, status: int
     save_scene(_scene(37, 3), path)
     _edit(path, old, new)
     with pytest.raises(ApiError) as caught:
-        check_ply(path, max_gaussians=1000)
+        check_ply(path, 1000)
     assert (caught.value.status, caught.value.code) == (status, code), caught.value.message
     if code in ("truncated", "bad_sh_count", "missing_property"):  # the full reader agrees
         with pytest.raises(PlyError) as full:
@@ -75,7 +82,7 @@ def test_header_counts_are_checked_against_the_file_size(tmp_path: Path) -> None
     save_scene(_scene(37, 3), path)
     path.write_bytes(path.read_bytes()[:-1])  # one byte short of 37 rows
     with pytest.raises(ApiError) as caught:
-        check_ply(path, max_gaussians=1000)
+        check_ply(path, 1000)
     assert caught.value.code == "truncated"
 
 
@@ -87,12 +94,20 @@ def test_ascii_and_not_ply(tmp_path: Path) -> None:
     body = "\n".join(" ".join(str(v) for v in row) for row in rows) + "\n"
     path = tmp_path / "a.ply"
     path.write_text(header + "end_header\n" + body)
-    assert check_ply(path, max_gaussians=10).gaussians == 2
+    assert check_ply(path, 10).count == 2
     path.write_text(header.replace("vertex 2", "vertex 2000") + "end_header\n" + body)
     with pytest.raises(ApiError, match="claims 2000"):
-        check_ply(path, max_gaussians=10_000)
+        check_ply(path, 10_000)
     for junk in (b"", b"PLY\n", b"ply\nformat ascii 1.0\n" + b"comment x\n" * 10_000):
         path.write_bytes(junk)
         with pytest.raises(ApiError) as caught:
-            check_ply(path, max_gaussians=10)
+            check_ply(path, 10)
         assert caught.value.code == "not_ply"
+
+
+def test_empty_scene_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "empty.ply"
+    save_scene(_scene(0, 0), path)
+    with pytest.raises(ApiError) as caught:
+        check_ply(path, 10)
+    assert (caught.value.status, caught.value.code) == (422, "empty_scene")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -186,7 +187,7 @@ def test_header_claiming_more_vertices_than_the_file_holds(tmp_path: Path) -> No
     data = path.read_bytes()
     cut = tmp_path / "cut.ply"
     cut.write_bytes(data[:-1])
-    with pytest.raises(PlyError, match="100 vertices") as err:
+    with pytest.raises(PlyError, match="100 Gaussians") as err:
         read_scene(cut)
     assert err.value.code == "truncated"
     # A billion Gaussians claimed in a few bytes: refused from the header, nothing allocated.
@@ -204,6 +205,22 @@ def test_header_claiming_more_vertices_than_the_file_holds(tmp_path: Path) -> No
     with pytest.raises(PlyError, match="other elements") as err:
         read_scene(faces)
     assert err.value.code == "truncated"
+
+
+def test_header_claiming_fewer_vertices_than_the_file_holds(tmp_path: Path) -> None:
+    """The rows the header leaves out would be dropped without a word: the file is refused instead."""
+    data = write_ply(tmp_path / "ok.ply", random_columns(100, 0)).read_bytes()
+    short = tmp_path / "short.ply"
+    short.write_bytes(data.replace(b"element vertex 100", b"element vertex 60"))
+    with pytest.raises(PlyError, match="fewer than the file carries") as err:
+        read_scene(short)
+    assert err.value.code == "trailing_data"
+
+
+def test_ply_errors_keep_their_code_through_pickling() -> None:
+    """Celery carries a worker's exception to the failure hook by pickling it: the code must survive."""
+    again = pickle.loads(pickle.dumps(PlyError("non_finite", "s.ply: NaN in x")))
+    assert (type(again), again.code, str(again)) == (PlyError, "non_finite", "s.ply: NaN in x")
 
 
 def test_truncated_ascii_file(tmp_path: Path) -> None:

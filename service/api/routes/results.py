@@ -8,6 +8,7 @@ from fastapi import APIRouter, Path
 from fastapi.responses import FileResponse
 
 from api_schemas import Report
+from symgs_core.export.formats import EXPORTS, ExportFormat
 from worker.storage import Storage
 from worker.store import JobStore
 
@@ -49,38 +50,26 @@ def get_result(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDe
     return _artifact(job_id, "result.symgs", owner, store, storage, "application/octet-stream", f"{job_id}.symgs")
 
 
-@router.get(
-    "/{job_id}/result.ply",
-    summary="Download the decoded scene as PLY",
-    description="The decoded scene in the graphdeco PLY layout that 3DGS viewers read.",
-    response_class=FileResponse,
-    responses={**_binary("graphdeco PLY", "application/x-ply"), **_ERRORS},
-)
-def get_result_ply(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
-    return _artifact(job_id, "result.ply", owner, store, storage, "application/x-ply", f"{job_id}.ply")
+def _export_route(fmt: ExportFormat) -> None:
+    """``GET /v1/jobs/{id}/result<extension>`` for one row of the export table."""
+
+    def get_export(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+        return _artifact(job_id, fmt.artifact, owner, store, storage, fmt.media_type, f"{job_id}{fmt.extension}")
+
+    router.add_api_route(
+        f"/{{job_id}}/{fmt.artifact}",
+        get_export,
+        methods=["GET"],
+        name=f"get_result_{fmt.name}",
+        summary=f"Download the decoded scene as {fmt.title}",
+        description=fmt.description,
+        response_class=FileResponse,
+        responses={**_binary(fmt.title, fmt.media_type), **_ERRORS},
+    )
 
 
-@router.get(
-    "/{job_id}/result.spz",
-    summary="Download the decoded scene as .spz",
-    description="The decoded scene in Niantic's .spz format (version 3), which most web viewers read.",
-    response_class=FileResponse,
-    responses={**_binary(".spz (gzip)"), **_ERRORS},
-)
-def get_result_spz(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
-    return _artifact(job_id, "result.spz", owner, store, storage, "application/octet-stream", f"{job_id}.spz")
-
-
-@router.get(
-    "/{job_id}/result.compressed.ply",
-    summary="Download the decoded scene as PlayCanvas compressed PLY",
-    description="The decoded scene in PlayCanvas' compressed PLY layout (quantised in chunks of 256 Gaussians).",
-    response_class=FileResponse,
-    responses={**_binary("compressed PLY", "application/x-ply"), **_ERRORS},
-)
-def get_result_compressed_ply(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
-    name = "result.compressed.ply"
-    return _artifact(job_id, name, owner, store, storage, "application/x-ply", f"{job_id}.compressed.ply")
+for _fmt in EXPORTS:
+    _export_route(_fmt)
 
 
 @router.get(

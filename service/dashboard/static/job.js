@@ -231,11 +231,12 @@ function showPictures(job) {
   $("pictures-section").hidden = !names.some((n) => !CHARTS[n]);
 }
 
-// What each artifact is, and where the API serves it.
-function download(name) {
-  if (name === "result.symgs") return ["Compressed archive (.symgs)", `${jobPath}/result`];
-  if (name === "report.json") return ["Metrics report (JSON)", `${jobPath}/report`];
-  if (name.startsWith("result.")) return [`Decoded scene (.${name.slice(7)})`, `${jobPath}/${name}`];
+// What each artifact is, and where the API serves it (the job's links name every export format).
+function download(job, name) {
+  if (name === "result.symgs") return ["Compressed archive (.symgs)", job.links.result];
+  if (name === "report.json") return ["Metrics report (JSON)", job.links.report];
+  const exported = Object.values(job.links.exports).find((href) => href.endsWith(`/${name}`));
+  if (exported) return [`Decoded scene (${name.slice("result".length)})`, exported];
   if (name.startsWith("charts/")) return [`${name.slice(7)}`, `${jobPath}/${name}`];
   return null;
 }
@@ -245,7 +246,7 @@ function showDownloads(job) {
   list.replaceChildren();
   const rank = (n) => (n === "result.symgs" ? 0 : n.startsWith("result.") ? 1 : n === "report.json" ? 2 : 3);
   for (const name of [...job.artifacts].sort((a, b) => rank(a) - rank(b) || a.localeCompare(b))) {
-    const entry = download(name);
+    const entry = download(job, name);
     if (!entry) continue;
     const [label, href] = entry;
     const filename = `${job.id}-${name.replace("/", "-")}`;

@@ -1,0 +1,207 @@
+"""The PLY header of a Gaussian scene: parsed and checked against the file's size before any data is read.
+
+Standard library only, so the API process checks uploads with the very rules the worker's reader applies
+(``ply.read_scene`` calls ``check_header`` first). A header is refused when it cannot describe a graphdeco scene
+(required properties, f_rest numbering, float types) or when its elements cannot fit in the file: every element's
+rows are counted at their smallest size (a list may be empty), so a header claiming 1e12 faces before its vertices
+is refused without reading them; a binary file without lists must be exactly as long as its header says.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+MAX_HEADER_BYTES = 1 << 20
+GEOMETRY = ("x", "y", "z")
+NORMALS = ("nx", "ny", "nz")
+DC = ("f_dc_0", "f_dc_1", "f_dc_2")
+SCALES = ("scale_0", "scale_1", "scale_2")
+ROTATIONS = ("rot_0", "rot_1", "rot_2", "rot_3")
+REQUIRED = GEOMETRY + DC + ("opacity",) + SCALES + ROTATIONS
+SH_DEGREE_OF_REST = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest properties -> SH degree
+
+# PLY scalar types: byte size and numpy kind.
+TYPES = {
+    "char": (1, "i"), "int8": (1, "i"), "uchar": (1, "u"), "uint8": (1, "u"),
+    "short": (2, "i"), "int16": (2, "i"), "ushort": (2, "u"), "uint16": (2, "u"),
+    "int": (4, "i"), "int32": (4, "i"), "uint": (4, "u"), "uint32": (4, "u"),
+    "float": (4, "f"), "float32": (4, "f"), "double": (8, "f"), "float64": (8, "f"),
+}  # fmt: skip
+FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+
+
+class PlyError(ValueError):
+    """A PLY file that cannot be read as a Gaussian scene; ``code`` says why in a machine-readable word.
+
+    Codes: not_ply, unsupported_format, malformed, missing_property, bad_sh_count, truncated, trailing_data,
+    non_finite, too_many_gaussians, empty_scene.
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(code, message)
+        self.code, self.message = code, message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass(frozen=True)
+class Element:
+    name: str
+    count: int
+    properties: tuple[tuple[str, str, str | None], ...]  # (name, value type, list length type or None)
+
+    @property
+    def has_lists(self) -> bool:
+        return any(length is not None for _, _, length in self.properties)
+
+    def min_row_bytes(self, ascii: bool) -> int:
+        """The fewest bytes a row can take: exact for binary rows without lists (a list may be empty)."""
+        if ascii:
+            return 2 * len(self.properties)  # every value takes at least one character and one separator
+        return sum(TYPES[length or value][0] for _, value, length in self.properties)
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """A checked Gaussian-scene header. ``size``: bytes up to and including the end_header line."""
+
+    format: str
+    elements: tuple[Element, ...]
+    comments: tuple[str, ...]
+    size: int
+    vertex: Element
+    rest: tuple[str, ...]  # f_rest_0 .. f_rest_{3K-1}
+
+    @property
+    def count(self) -> int:
+        return self.vertex.count
+
+    @property
+    def sh_degree(self) -> int:
+        return SH_DEGREE_OF_REST[len(self.rest)]
+
+    @property
+    def properties(self) -> list[str]:
+        return [p[0] for p in self.vertex.properties]
+
+    @property
+    def used(self) -> set[str]:
+        return set(REQUIRED) | set(self.rest)
+
+
+def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
+    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
+        raise PlyError("not_ply", f"{name}: not a PLY file (it does not start with 'ply')")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise PlyError("not_ply", f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES} bytes")
+    newline = head.find(b"\n", end)
+    if newline < 0:
+        raise PlyError("truncated", f"{name}: the file ends inside its header")
+    try:
+        lines = head[:end].decode("ascii").splitlines()[1:]
+    except UnicodeDecodeError:
+        raise PlyError("malformed", f"{name}: the header is not ASCII text") from None
+    fmt = None
+    elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
+    comments: list[str] = []
+    for number, raw in enumerate(lines, start=2):
+        words = raw.split()
+        if not words or words[0] == "obj_info":
+            continue
+        bad = PlyError("malformed", f"{name}: header line {number} is malformed: {raw.strip()[:80]!r}")
+        if words[0] == "comment":
+            comments.append(raw.strip()[len("comment") :].strip())
+        elif words[0] == "format":
+            if len(words) != 3:
+                raise bad
+            fmt = words[1]
+            if fmt not in FORMATS:
+                raise PlyError("unsupported_format", f"{name}: unknown PLY format {fmt[:40]!r}")
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise bad
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise bad
+            if len(words) == 3 and words[1] in TYPES:
+                prop = (words[2], words[1], None)
+            elif len(words) == 5 and words[1] == "list" and words[2] in TYPES and words[3] in TYPES:
+                prop = (words[4], words[3], words[2])
+            else:
+                raise bad
+            if any(p[0] == prop[0] for p in elements[-1][2]):
+                raise PlyError("malformed", f"{name}: property {prop[0][:40]!r} appears twice")
+            elements[-1][2].append(prop)
+        else:
+            raise bad
+    if fmt is None:
+        raise PlyError("malformed", f"{name}: the header has no 'format' line")
+    return fmt, [Element(n, c, tuple(p)) for n, c, p in elements], comments, newline + 1
+
+
+def _rest_names(names: list[str], name: str) -> tuple[str, ...]:
+    rest = [n for n in names if n.startswith("f_rest_")]
+    if set(rest) != {f"f_rest_{i}" for i in range(len(rest))} or len(rest) not in SH_DEGREE_OF_REST:
+        raise PlyError(
+            "bad_sh_count",
+            f"{name}: {len(rest)} f_rest properties match no SH degree (expected 0, 9, 24 or 45, numbered from 0)",
+        )
+    return tuple(f"f_rest_{i}" for i in range(len(rest)))
+
+
+def _check_size(fmt: str, elements: list[Element], vertex: Element, body: int, name: str) -> None:
+    ascii = fmt == "ascii"
+    needed = sum(e.count * e.min_row_bytes(ascii) for e in elements)
+    if needed > body:
+        others = "" if elements == [vertex] else " and its other elements"
+        raise PlyError(
+            "truncated",
+            f"{name}: the header claims {vertex.count} Gaussians{others}, at least {needed} bytes of data, "
+            f"but the file holds {body} bytes after the header",
+        )
+    if not ascii and not any(e.has_lists for e in elements) and body > needed:
+        raise PlyError(
+            "trailing_data",
+            f"{name}: the header describes {needed} bytes of data but the file holds {body}: "
+            f"it declares {vertex.count} Gaussians, fewer than the file carries",
+        )
+
+
+def check_header(
+    head: bytes, file_size: int, *, name: str = "scene.ply", max_gaussians: int | None = None
+) -> PlyHeader:
+    """Parse ``head`` (the first bytes of a file of ``file_size`` bytes) as a Gaussian-scene PLY header; PlyError
+    names what is wrong."""
+    fmt, elements, comments, size = _parse(head[:MAX_HEADER_BYTES], name)
+    vertex = next((e for e in elements if e.name == "vertex"), None)
+    if vertex is None:
+        raise PlyError("missing_property", f"{name}: no 'vertex' element")
+    names = [p[0] for p in vertex.properties]
+    missing = [p for p in REQUIRED if p not in names]
+    if missing:
+        raise PlyError("missing_property", f"{name}: missing required properties {', '.join(missing)}")
+    rest = _rest_names(names, name)
+    used = set(REQUIRED) | set(rest)
+    for prop, value, length in vertex.properties:
+        if prop in used and (length is not None or TYPES[value][1] != "f"):
+            kind = "a list" if length is not None else value
+            raise PlyError("unsupported_format", f"{name}: property {prop!r} is {kind}, expected float")
+    if max_gaussians is not None and vertex.count > max_gaussians:
+        raise PlyError("too_many_gaussians", f"{name}: {vertex.count} Gaussians exceed the limit of {max_gaussians}")
+    _check_size(fmt, elements, vertex, file_size - size, name)
+    return PlyHeader(fmt, tuple(elements), tuple(comments), size, vertex, rest)
+
+
+def read_header(
+    path: str | os.PathLike[str], *, max_gaussians: int | None = None, name: str | None = None
+) -> PlyHeader:
+    """``check_header`` of the file at ``path``; messages call it ``name`` (default: the file's name)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(MAX_HEADER_BYTES)
+    return check_header(head, path.stat().st_size, name=name or path.name, max_gaussians=max_gaussians)
