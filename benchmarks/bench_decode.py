@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from symgs_core.codec import QuantSteps, register_quantized
+from symgs_core.codec import QuantSteps
 from symgs_core.codec.frames import canonical_frames
 from symgs_core.pipeline import decompress
 from symgs_core.pipeline.budget import palette_start
@@ -54,7 +54,7 @@ def main() -> None:
     scene, what = million()
     extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
     steps = replace(QuantSteps().scaled(args.factor), sh_palette=palette_start(scene.sh_rest))
-    codec = register_quantized("bench-decode", steps, extent)
+    codec = steps.archive_codec(extent, "bench-decode")
     data = write_archive(LevelState.plain(canonical_frames(scene)), {}, codec)
     timings: dict[str, list[float]] = {"decode": [], "write": [], "total": [], "cpu": []}
     for _ in range(args.repeats):

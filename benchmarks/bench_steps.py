@@ -29,7 +29,7 @@ from symgs_core.codec import read_header  # noqa: E402
 from symgs_core.codec.frames import canonical_frames  # noqa: E402
 from symgs_core.codec.palette import ShPaletteCodec  # noqa: E402
 from symgs_core.codec.quantize import ShRestCodec  # noqa: E402
-from symgs_core.codec.steps import QuantSteps, register_quantized  # noqa: E402
+from symgs_core.codec.steps import QuantSteps  # noqa: E402
 from symgs_core.pipeline.budget import extent_of, fit_quantization, fit_steps  # noqa: E402
 from symgs_core.pipeline.encode import with_sh_weights, write_archive  # noqa: E402
 from symgs_core.pipeline.state import LevelState  # noqa: E402
@@ -38,7 +38,7 @@ from symgs_core.views import self_supervised_views  # noqa: E402
 
 
 def _row(name: str, state: LevelState, fit, seconds: float) -> str:  # noqa: ANN001 - QuantFit
-    archive = write_archive(state, {}, register_quantized("bench-steps", fit.steps, extent_of(state.stored)))
+    archive = write_archive(state, {}, fit.steps.archive_codec(extent_of(state.stored), "bench-steps"))
     sections = ", ".join(f"{s['name']} {s['length']:,}" for s in read_header(archive)["sections"])
     palette = f", SH palette {fit.steps.sh_palette:,}" if fit.steps.sh_palette else ""
     return f"  {name}: {len(archive):,} B, {fit.psnr:.2f} dB, {seconds:.0f} s ({sections}{palette})"

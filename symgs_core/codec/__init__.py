@@ -16,6 +16,7 @@ from .errors import ArchiveError, ArchiveErrorCode
 from .order import coding_order, morton_codes
 from .registry import (
     SECTION_NAMES,
+    ArchiveCodec,
     archive_codec,
     archive_codec_names,
     register_archive_codec,
@@ -23,13 +24,14 @@ from .registry import (
     section_codec,
 )
 from .section import EncodedSection, SectionCodec
-from .steps import QuantSteps, register_quantized  # registers the quantising section codecs for readers
+from .steps import QuantSteps  # registers the quantising section codecs for readers
 
 __all__ = [
     "FORMAT_VERSION",
     "MAGIC",
     "QuantSteps",
     "SECTION_NAMES",
+    "ArchiveCodec",
     "ArchiveContents",
     "ArchiveError",
     "ArchiveErrorCode",
@@ -45,7 +47,6 @@ __all__ = [
     "expanded_count",
     "morton_codes",
     "read_header",
-    "register_quantized",
     "register_archive_codec",
     "register_section_codec",
     "section_codec",

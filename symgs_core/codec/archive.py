@@ -28,7 +28,7 @@ from ..mirror import Plane, expand_planes
 from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
 from .errors import ArchiveError
-from .registry import SECTION_NAMES, archive_codec, section_codec
+from .registry import SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
 from .section import SectionCodec
 
 _HEADER_KEYS = {"count", "sh_degree", "coordinate_convention", "codec", "planes", "sections", "meta"}
@@ -89,9 +89,11 @@ def _plain_json(meta: dict[str, Any]) -> None:
         raise ValueError("meta must be plain JSON: dict, list, str, int, float, bool, None (tuples become lists)")
 
 
-def encode_archive(contents: ArchiveContents, *, codec: str = "lossless") -> bytes:
-    """The `.symgs` bytes of ``contents``, each section written by archive codec ``codec`` (see ``registry``)."""
-    codecs = archive_codec(codec)
+def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lossless") -> bytes:
+    """The `.symgs` bytes of ``contents``, each section written by ``codec`` (an ``ArchiveCodec``, or the name of
+    one registered in ``registry``)."""
+    writer = archive_codec(codec)
+    codecs = writer.sections
     _plain_json(contents.meta)
     arrays = _section_arrays(contents)
     table, payloads, offset = [], [], 0
@@ -114,7 +116,7 @@ def encode_archive(contents: ArchiveContents, *, codec: str = "lossless") -> byt
         "count": len(contents.stored),
         "sh_degree": contents.stored.sh_degree,
         "coordinate_convention": COORDINATE_CONVENTION,
-        "codec": codec,
+        "codec": writer.name,
         "planes": [{"normal": list(p.normal), "offset": p.offset} for p in contents.planes],
         "sections": table,
         "meta": contents.meta,

@@ -1,14 +1,15 @@
 """The codec tables: section codecs by name (what readers look up) and archive codecs (what writers choose).
 
-An archive codec names one section codec for every section of the archive. The quantising codecs plug in here:
-``register_archive_codec("balanced", {"means": MyPositionCodec(bits=16), ...})`` makes them writable by name and
-readable by every reader of this build, since each section records the name of the codec that wrote it and
-everything that codec needs to decode it.
+An archive codec names one section codec for every section of the archive. Section codecs are registered once, at
+import, and are then readable by every reader of this build, since each section records the name of the codec
+that wrote it and everything that codec needs to decode it. A writer passes its ``ArchiveCodec`` to the encoder;
+a few fixed ones (lossless, float16) are also known by name.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 from .errors import ArchiveError
 from .floats import FLOAT16, FLOAT32
@@ -20,7 +21,7 @@ SECTION_NAMES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest", "b
 SECTION_KINDS: dict[str, SectionKind] = {name: "float32" for name in SECTION_NAMES[:-1]} | {"bits": "bool"}
 
 _SECTION_CODECS: dict[str, SectionCodec] = {}
-_ARCHIVE_CODECS: dict[str, dict[str, SectionCodec]] = {}
+_ARCHIVE_CODECS: dict[str, ArchiveCodec] = {}
 
 
 def register_section_codec(codec: SectionCodec) -> None:
@@ -33,23 +34,48 @@ def register_section_codec(codec: SectionCodec) -> None:
     _SECTION_CODECS.setdefault(codec.name, codec)
 
 
-def register_archive_codec(name: str, codecs: Mapping[str, SectionCodec]) -> None:
-    """Make archive codec ``name`` writable: ``codecs`` maps every section name to the codec that writes it."""
-    if set(codecs) != set(SECTION_NAMES):
-        raise ValueError(f"archive codec {name!r} covers sections {sorted(codecs)}, expected {sorted(SECTION_NAMES)}")
-    for section, codec in codecs.items():
-        if codec.kind != SECTION_KINDS[section]:
-            raise ValueError(f"archive codec {name!r}: {codec.name!r} ({codec.kind}) cannot hold section {section!r}")
+@dataclass(frozen=True)
+class ArchiveCodec:
+    """What writes an archive: a name (recorded in the header, for people) and the codec of every section.
+
+    A job builds its own from its fitted steps (``QuantSteps.archive_codec``) and passes it to the writer; nothing
+    global changes. Readers need nothing of it: each section names its codec and carries its own parameters.
+    """
+
+    name: str
+    sections: Mapping[str, SectionCodec]
+
+    def __post_init__(self) -> None:
+        if set(self.sections) != set(SECTION_NAMES):
+            raise ValueError(
+                f"archive codec {self.name!r} covers sections {sorted(self.sections)}, expected {sorted(SECTION_NAMES)}"
+            )
+        for section, codec in self.sections.items():
+            if codec.kind != SECTION_KINDS[section]:
+                raise ValueError(
+                    f"archive codec {self.name!r}: {codec.name!r} ({codec.kind}) cannot hold section {section!r}"
+                )
+            known = _SECTION_CODECS.get(codec.name)
+            if known is None or type(known) is not type(codec):
+                raise ValueError(f"archive codec {self.name!r}: section codec {codec.name!r} is not readable")
+
+
+def register_archive_codec(name: str, codecs: Mapping[str, SectionCodec]) -> ArchiveCodec:
+    """Make archive codec ``name`` writable by name, once, when a module is imported: ``codecs`` maps every
+    section name to the codec that writes it (its section codecs become readable)."""
     for codec in codecs.values():
         register_section_codec(codec)
-    _ARCHIVE_CODECS[name] = dict(codecs)
-
-
-def archive_codec(name: str) -> dict[str, SectionCodec]:
-    """The section codecs of archive codec ``name``; ValueError naming the known ones otherwise."""
-    if name not in _ARCHIVE_CODECS:
-        raise ValueError(f"unknown archive codec {name!r}; known: {sorted(_ARCHIVE_CODECS)}")
+    _ARCHIVE_CODECS[name] = ArchiveCodec(name, dict(codecs))
     return _ARCHIVE_CODECS[name]
+
+
+def archive_codec(codec: str | ArchiveCodec) -> ArchiveCodec:
+    """The archive codec named ``codec`` (or ``codec`` itself); ValueError naming the known ones otherwise."""
+    if isinstance(codec, ArchiveCodec):
+        return codec
+    if codec not in _ARCHIVE_CODECS:
+        raise ValueError(f"unknown archive codec {codec!r}; known: {sorted(_ARCHIVE_CODECS)}")
+    return _ARCHIVE_CODECS[codec]
 
 
 def archive_codec_names() -> list[str]:

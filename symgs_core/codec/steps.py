@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 from .masks import MASKS
 from .palette import RowWeights, ShPaletteCodec
 from .quantize import OpacityCodec, PositionCodec, RotationCodec, ScalarGridCodec, ShDcCodec, ShRestCodec
-from .registry import register_archive_codec, register_section_codec
+from .registry import ArchiveCodec, register_archive_codec, register_section_codec
 from .section import SectionCodec
 
 C0 = 0.28209479177387814
@@ -68,6 +68,10 @@ class QuantSteps:
             "bits": MASKS,
         }
 
+    def archive_codec(self, extent: float, name: str = "quantized") -> ArchiveCodec:
+        """The archive codec writing a stored set whose bounding box's longest side is ``extent`` with these steps."""
+        return ArchiveCodec(name, self.codecs(extent))
+
     def as_dict(self) -> dict:
         return {
             "position": self.position, "rotation": self.rotation, "scale": self.scale, "opacity": self.opacity,
@@ -75,15 +79,6 @@ class QuantSteps:
         }  # fmt: skip
 
 
-def register_quantized(name: str, steps: QuantSteps, extent: float) -> str:
-    """Register archive codec ``name`` writing the stored set with ``steps``; returns ``name``.
-
-    Readers need nothing registered per file: every section names its codec and carries its own steps.
-    """
-    register_archive_codec(name, steps.codecs(extent))
-    return name
-
-
 # Readers of this build know every quantising codec, whatever step a writer chose.
-register_quantized("quantized", QuantSteps(), 1.0)
+register_archive_codec("quantized", QuantSteps().codecs(1.0))
 register_section_codec(ShPaletteCodec(1, QuantSteps().sh))

@@ -24,8 +24,8 @@ from ..codec import ArchiveContents, coding_order, encode_archive
 from ..codec.frames import canonical_frames
 from ..codec.order import grid_cells
 from ..codec.palette import RowWeights
-from ..codec.registry import archive_codec
-from ..codec.steps import QuantSteps, register_quantized
+from ..codec.registry import ArchiveCodec, archive_codec
+from ..codec.steps import QuantSteps
 from ..config import CompressConfig
 from ..mirror import Plane
 from ..views import evaluate
@@ -37,11 +37,11 @@ from .state import LevelState
 PRESET_STEPS = {"small": QuantSteps().scaled(2.0), "balanced": QuantSteps(), "high": QuantSteps().scaled(0.5)}
 
 
-def write_archive(state: LevelState, meta: dict, codec: str = "lossless") -> bytes:
-    """The archive of ``state`` in coding order, written by archive codec ``codec``."""
+def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lossless") -> bytes:
+    """The archive of ``state`` in coding order, written by ``codec`` (an archive codec or a registered name)."""
     planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
     stored, bits = state.stored.detach().to("cpu"), state.bits.cpu()
-    cells = grid_cells(archive_codec(codec)["means"], stored.means.numpy())
+    cells = grid_cells(archive_codec(codec).sections["means"], stored.means.numpy())
     perm = coding_order(stored, bits, cells)
     return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
 
@@ -201,17 +201,16 @@ def reduce_and_encode(
         stages.append(_stage("quantization", before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0))
         stages.append(_stage("entropy_coding", before_bytes, len(archive), psnr, psnr, 0.0, codec="lossless"))
         return Coded(state, archive, write_archive(source_state, meta), "lossless", stages)
-    codec = register_quantized(config.preset, fit.steps, extent_of(state.stored))
+    codec = fit.steps.archive_codec(extent_of(state.stored), config.preset)
     fixed = _fixed_width_bytes(state, fit.steps)
     stages.append(_stage("quantization", before_bytes, fixed, psnr, fit.psnr, time.perf_counter() - t0,
                          factor=fit.factor, tries=fit.tries))  # fmt: skip
     t0 = time.perf_counter()
     archive = write_archive(state, meta, codec)
     stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0,
-                         codec=codec))  # fmt: skip
+                         codec=codec.name))  # fmt: skip
     quantization = {"steps": fit.steps.as_dict(), "factor": fit.factor, "floor": floors["quantization"],
                     "floors": floors, "shares": SHARES, "probe_errors": fit.probe_errors}  # fmt: skip
-    plain_codec = register_quantized(f"{config.preset}-baseline", replace(fit.steps, sh_weights=None), extent_of(
-        source_state.stored))  # fmt: skip
+    plain_codec = replace(fit.steps, sh_weights=None).archive_codec(extent_of(source_state.stored), config.preset)
     baseline = write_archive(_canonical(source_state), meta, plain_codec)
-    return Coded(state, archive, baseline, codec, stages, quantization)
+    return Coded(state, archive, baseline, codec.name, stages, quantization)

@@ -210,7 +210,7 @@ class _RawFloats:
 
 
 def test_registered_codec_plugs_into_the_container() -> None:
-    codecs = dict(archive_codec("lossless")) | {"sh_dc": _RawFloats()}
+    codecs = dict(archive_codec("lossless").sections) | {"sh_dc": _RawFloats()}
     register_archive_codec("test-raw-dc", codecs)
     assert "test-raw-dc" in archive_codec_names()
     contents = random_contents(12, 1, 2, special=False)
@@ -229,7 +229,7 @@ def test_registry_refuses_inconsistent_codecs() -> None:
         impostor = _RawFloats()
         impostor.name = FLOAT32.name
         register_section_codec(impostor)
-    assert archive_codec("lossless")["bits"] is MASKS
+    assert archive_codec("lossless").sections["bits"] is MASKS
 
 
 # --------------------------------------------------------------------------------------------- pinned encoding

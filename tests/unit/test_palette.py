@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive, register_quantized
+from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive
 from symgs_core.codec.entropy import encode_table
 from symgs_core.codec.palette import ShPaletteCodec, _nearest, _reassign, fit_palette
 from symgs_core.codec.quantize import ShRestCodec
@@ -102,7 +102,7 @@ def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None
     )
     steps = QuantSteps(sh_palette=32).scaled(3.0)
     assert steps.sh_palette == 32 and steps.as_dict()["sh_palette"] == 32
-    name = register_quantized("test-palette", steps, extent_of(scene))
+    name = steps.archive_codec(extent_of(scene), "test-palette")
     contents = ArchiveContents(scene, [], torch.zeros(n, 0, dtype=torch.bool), {})
     data = encode_archive(contents, codec=name)
     decoded = decode_archive(data).stored

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive, register_quantized
+from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive
 from symgs_core.codec.entropy import MAX_ALPHABET, decode_table, encode_table
 from symgs_core.codec.quantize import (
     OpacityCodec,
@@ -128,7 +128,7 @@ def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> No
     scene = _random_scene(700, degree, seed=degree)
     steps = QuantSteps().scaled(3.0)
     extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
-    name = register_quantized("test-quantized", steps, extent)
+    name = steps.archive_codec(extent, "test-quantized")
     contents = ArchiveContents(scene, [], torch.zeros(len(scene), 0, dtype=torch.bool), {"x": 1})
     data = encode_archive(contents, codec=name)
     decoded = decode_archive(data).stored
@@ -141,7 +141,7 @@ def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> No
 def test_quantized_archive_encoding_is_pinned() -> None:
     """A format change must be deliberate: re-pin with the new digest only when the stream layout changes."""
     scene = _random_scene(300, 1, seed=11)
-    name = register_quantized("test-pinned", QuantSteps(), 8.0)
+    name = QuantSteps().archive_codec(8.0, "test-pinned")
     data = encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {}), codec=name)
     assert hashlib.sha256(data).hexdigest() == PINNED
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from symgs_core.codec.steps import QuantSteps, register_quantized
+from symgs_core.codec.steps import QuantSteps
 from symgs_core.pipeline.budget import (
     _ATTRIBUTES,
     archive_bytes,
@@ -63,7 +63,7 @@ def test_coarsening_keeps_the_floor_and_never_grows_the_archive(setting) -> None
     decoded = quantized(state.stored, spent.steps)
     assert evaluate(decoded, views.test, views.background)[0] == pytest.approx(spent.psnr)
     extent = float((state.stored.means.max(0).values - state.stored.means.min(0).values).max())
-    size = lambda steps: len(write_archive(state, {}, register_quantized("test-coarsen", steps, extent)))  # noqa: E731
+    size = lambda steps: len(write_archive(state, {}, steps.archive_codec(extent, "test-coarsen")))  # noqa: E731
     assert size(spent.steps) <= size(fit.steps)
     tried = [t for t in spent.tries if "coarsen" in t]
     assert 0 < len(tried) <= 6
@@ -74,7 +74,7 @@ def test_coarsening_keeps_the_floor_and_never_grows_the_archive(setting) -> None
 def test_fitting_from_a_skewed_start_beats_one_common_factor(setting) -> None:  # noqa: ANN001
     state, views = setting
     extent = float((state.stored.means.max(0).values - state.stored.means.min(0).values).max())
-    size = lambda steps: len(write_archive(state, {}, register_quantized("test-fit", steps, extent)))  # noqa: E731
+    size = lambda steps: len(write_archive(state, {}, steps.archive_codec(extent, "test-fit")))  # noqa: E731
     common = fit_quantization(state, views.test, views.background, floor=FLOOR, start=SKEWED, psnr_before=math.inf)
     fitted = fit_steps(state, views.test, views.background, floor=FLOOR, start=SKEWED, psnr_before=math.inf)
     assert common.psnr >= FLOOR and fitted.psnr >= FLOOR
