@@ -17,14 +17,29 @@ from .jobs import (
     Queue,
     SceneInfo,
 )
-from .params import DevicePreference, JobParams, Preset
-from .report import GaussianCounts, LevelReport, Report
+from .params import DevicePreference, JobParams, Preset, PresetInfo
+from .report import (
+    Cameras,
+    CameraSet,
+    CodecReport,
+    Fidelity,
+    GaussianCounts,
+    LevelReport,
+    Report,
+    ReportConfig,
+    StageReport,
+    Steps,
+)
 
 __all__ = [
     "TERMINAL_STATES",
+    "CameraSet",
+    "Cameras",
+    "CodecReport",
     "DevicePreference",
     "ErrorDetail",
     "ErrorResponse",
+    "Fidelity",
     "GaussianCounts",
     "ImagesInfo",
     "Job",
@@ -38,7 +53,11 @@ __all__ = [
     "LevelReport",
     "MirrorSummary",
     "Preset",
+    "PresetInfo",
     "Queue",
     "Report",
+    "ReportConfig",
     "SceneInfo",
+    "StageReport",
+    "Steps",
 ]

@@ -36,7 +36,8 @@ class JobMetrics(BaseModel):
     output_bytes: int
     ratio_to_ply: float
     ratio_to_baseline: float
-    psnr: float | None = Field(description="dB; null when infinite (a lossless result)")
+    psnr: float | None = Field(description="dB on the evaluation cameras, full frame; null when infinite")
+    psnr_object: float | None = Field(None, description="dB on the evaluation cameras, the object's own pixels")
     ssim: float | None
     seconds: float = Field(description="pipeline time, all stages")
 

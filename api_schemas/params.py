@@ -1,4 +1,9 @@
-"""What a client may ask of a compression job (the ``params`` part of ``POST /v1/jobs``)."""
+"""What a client may ask of a compression job (the ``params`` part of ``POST /v1/jobs``).
+
+Presets and their defaults are decided in one place, ``symgs_core.config``; a field left out takes the value the
+preset gives it there, so a job sent here and the same settings given to ``symgs compress`` or ``symgs_core.compress``
+write the same archive.
+"""
 
 from __future__ import annotations
 
@@ -6,13 +11,15 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Preset = Literal["small", "balanced", "high", "lossless"]
+from symgs_core.config import DEFAULT_PRESET, PRESETS, Preset
+
 DevicePreference = Literal["auto", "cpu", "cuda"]
+_PRESETS_TEXT = "; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items())
 
 
 class JobParams(BaseModel):
-    """Compression parameters. Every field is optional: a field left out (or null) takes the pipeline's default,
-    which may depend on the preset. Bounds keep one job within a worker's means.
+    """Compression parameters. Every field is optional: a field left out (or null) takes the default of the preset
+    (``GET /v1/presets`` lists them). Bounds keep one job within a worker's means.
 
     ``device``: ``cuda`` waits for a GPU worker, ``cpu`` runs on a CPU worker, ``auto`` takes a GPU worker when one
     is alive and a CPU worker otherwise.
@@ -22,23 +29,50 @@ class JobParams(BaseModel):
         extra="forbid",
         json_schema_extra={
             "examples": [
-                {"preset": "balanced", "psnr_budget": 0.3, "max_levels": 4, "device": "auto"},
-                {"preset": "small", "iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64},
+                {},
+                {"preset": "small", "device": "auto"},
+                {"preset": "balanced", "iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64},
             ]
         },
     )
 
-    preset: Preset | None = Field(None, description="attribute codec and reductions: small, balanced, high, lossless")
-    psnr_budget: float | None = Field(None, ge=0, le=60, description="dB of held-out PSNR the job may cost in total")
+    preset: Preset = Field(DEFAULT_PRESET, description=f"what the job may spend and must keep. {_PRESETS_TEXT}")
+    psnr_budget: float | None = Field(
+        None, ge=0, le=60, allow_inf_nan=False, description="dB of PSNR the job may cost (default: the preset's)"
+    )
     max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
     iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")
-    train_views: int | None = Field(None, ge=1, le=512)
-    eval_views: int | None = Field(None, ge=1, le=256)
-    resolution: int | None = Field(None, ge=16, le=2048, description="longest side of rendered views, pixels")
+    train_views: int | None = Field(None, ge=1, le=512, description="cameras the fine-tune trains on")
+    fit_views: int | None = Field(None, ge=1, le=256, description="cameras every decision is taken on")
+    eval_views: int | None = Field(None, ge=1, le=256, description="cameras the report scores (fitted on nothing)")
+    resolution: int | None = Field(None, ge=16, le=2048, description="longest side of training views, pixels")
+    eval_resolution: int | None = Field(
+        None, ge=16, le=2048, description="longest side of fitting and evaluation views, pixels"
+    )
     use_mirrors: bool | None = Field(None, description="false: the plain codec only (the baseline)")
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
     device: DevicePreference = "auto"
 
     def pipeline_overrides(self) -> dict:
-        """The fields the client set, as keyword arguments of the pipeline's config (device excluded)."""
+        """The preset and the fields the client set, as keyword arguments of ``CompressConfig.for_preset``
+        (device excluded: the worker's queue decides it)."""
         return self.model_dump(exclude={"device"}, exclude_none=True)
+
+
+class PresetInfo(BaseModel):
+    """A preset as ``GET /v1/presets`` lists it."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"name": "balanced", "psnr_budget": 0.3, "default": True,
+                                         "summary": PRESETS["balanced"].summary}]}  # fmt: skip
+    )
+
+    name: Preset
+    psnr_budget: float = Field(description="dB of PSNR a job of this preset may cost, unless it names its own")
+    default: bool = Field(description="the preset of a job that names none")
+    summary: str
+
+    @classmethod
+    def listing(cls) -> list[PresetInfo]:
+        return [cls(name=s.name, psnr_budget=s.budget, default=s.name == DEFAULT_PRESET, summary=s.summary)
+                for s in PRESETS.values()]  # fmt: skip

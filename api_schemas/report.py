@@ -1,29 +1,89 @@
-"""The metrics report of a finished job, as the pipeline writes it (``GET /v1/jobs/{id}/report``)."""
+"""The report of a finished job (``GET /v1/jobs/{id}/report``): ``symgs_core.report.Report`` field for field.
+
+A test holds the two against each other. PSNRs are dB and null when infinite (a lossless result, or a scene
+against itself); sizes are bytes, times seconds.
+"""
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import BaseModel, ConfigDict, Field
+
+from .params import DevicePreference, Preset
+
+
+class Fidelity(BaseModel):
+    psnr: float | None = Field(description="dB over the full frame; null when infinite")
+    psnr_object: float | None = Field(description="dB over the object's own pixels; null when infinite")
+    ssim: float
+
+
+class CameraSet(BaseModel):
+    name: str = Field(description="training, fitting or evaluation")
+    count: int
+    source: str = Field(description="renders of the input, or photographs")
+    resolution: int = Field(description="longest side, pixels")
+    distances: tuple[float, float] | None = Field(description="nearest and farthest camera in scene radii")
+
+
+class Cameras(BaseModel):
+    training: CameraSet
+    fitting: CameraSet
+    evaluation: CameraSet
+    disjoint: bool = Field(description="no camera is in two sets: the reported figures were fitted on nothing")
 
 
 class LevelReport(BaseModel):
-    """One mirror level, accepted or rolled back."""
-
-    model_config = ConfigDict(extra="allow")
+    """One mirror level, kept or not; PSNRs on the fitting cameras."""
 
     level: int
-    normal: list[float] = Field(min_length=3, max_length=3, description="unit normal n of the plane n.x = offset")
+    normal: tuple[float, float, float] = Field(description="unit normal n of the plane n.x = offset")
     offset: float
     votes: float
     left: int = Field(description="Gaussians kept and reflected")
     right: int = Field(description="Gaussians dropped because the reflection covers them")
     coverage: float
-    psnr_before: float | None = Field(description="dB; null when infinite")
+    psnr_before: float | None = Field(description="after dropping the right side, before the fine-tune")
     psnr_after: float | None
-    ssim: float | None
+    ssim: float
+    stored_after: int
     seconds: float
     accepted: bool
+    reason: str
+    gate: float | None = Field(None, description="colour-agreement gate of the membership (null: geometry alone)")
+
+
+class StageReport(BaseModel):
+    """What one stage saved and cost; PSNR on the fitting cameras after it."""
+
+    stage: str = Field(description="mirrors, pruning, sh_reduction, quantization, entropy_coding")
+    bytes_before: int
+    bytes_after: int
+    saved_bytes: int
+    psnr_after: float | None
+    cost_db: float | None
+    seconds: float
+    kept: bool = True
+    reason: str = ""
+    removed: int | None = Field(None, description="pruning: Gaussians; sh_reduction: SH bands")
+    threshold: float | None = None
+    psnr_if_kept: float | None = Field(None, description="an undone reduction: the PSNR it measured")
+
+
+class Steps(BaseModel):
+    position: float = Field(description="a fraction of the bounding box's longest side")
+    rotation: float
+    scale: float
+    opacity: float
+    dc: float
+    sh: tuple[float, ...]
+    sh_palette: int = Field(description="0: SH bands per coefficient; else at most this many palette entries")
+
+
+class CodecReport(BaseModel):
+    name: str = Field(description="lossless, or the preset whose fitted steps wrote the archive")
+    steps: Steps | None = Field(description="null: float32, nothing quantised")
+    floor: float | None = Field(description="the PSNR the steps were fitted to, on the fitting cameras")
+    tries: int = Field(description="renders the step search took")
 
 
 class GaussianCounts(BaseModel):
@@ -32,48 +92,57 @@ class GaussianCounts(BaseModel):
     decoded: int
 
 
-class Report(BaseModel):
-    """Sizes in bytes, PSNR in dB, times in seconds."""
+class ReportConfig(BaseModel):
+    """The job's settings as the pipeline resolved them (``symgs_core.config.CompressConfig``)."""
 
+    preset: Preset
+    psnr_budget: float | None
+    nominal_psnr: float
+    max_levels: int
+    iterations: int
+    train_views: int
+    fit_views: int
+    eval_views: int
+    resolution: int
+    eval_resolution: int
+    device: DevicePreference
+    use_mirrors: bool
+    pictures: bool
+    seed: int
+    detect: dict[str, float | int | bool]
+
+
+class Report(BaseModel):
     model_config = ConfigDict(
-        extra="allow",
         json_schema_extra={
             "examples": [
                 {
-                    "input_bytes": 1_240_000,
-                    "output_bytes": 81_000,
-                    "baseline_bytes": 122_000,
-                    "ratio_to_ply": 15.3,
-                    "ratio_to_baseline": 1.51,
+                    "scene": "chair.ply", "input_bytes": 1_240_000, "output_bytes": 81_000, "baseline_bytes": 122_000,
+                    "plain_codec_bytes": 95_000, "ratio_to_ply": 15.3, "ratio_to_baseline": 1.51,
                     "gaussians": {"input": 5000, "stored": 2600, "decoded": 5000},
-                    "levels": [
-                        {
-                            "level": 0, "normal": [1.0, 0.0, 0.0], "offset": 0.0, "votes": 812.0, "left": 2400,
-                            "right": 2400, "coverage": 0.96, "psnr_before": 38.2, "psnr_after": 41.0, "ssim": 0.991,
-                            "seconds": 3.1, "accepted": True,
-                        }  # fmt: skip
-                    ],
-                    "psnr": 41.0,
-                    "ssim": 0.991,
-                    "psnr_reference": "renders of the input",
-                    "seconds": {"load": 0.1, "detect": 0.4, "optimize": 3.1, "encode": 0.2},
-                    "device": "cpu",
-                    "config": {"preset": "balanced", "psnr_budget": 0.5},
-                }
+                    "fidelity": {"psnr": 43.2, "psnr_object": 41.9, "ssim": 0.994},
+                    "psnr_floor": 41.6, "psnr_input": None,
+                }  # fmt: skip
             ]
         },
     )
 
+    scene: str = Field(description="the input's file name")
     input_bytes: int
     output_bytes: int
-    baseline_bytes: int
-    ratio_to_ply: float
+    baseline_bytes: int = Field(description="the codec alone on the input, at the archive's steps")
+    plain_codec_bytes: int | None = Field(description="the pipeline without mirrors, when mirrors were tried")
+    ratio_to_ply: float | None
     ratio_to_baseline: float
     gaussians: GaussianCounts
     levels: list[LevelReport]
-    psnr: float | None = Field(description="dB of the decoded scene; null when infinite")
-    ssim: float | None
-    psnr_reference: Literal["renders of the input", "test images"] | str
-    seconds: dict[str, float]
+    stages: list[StageReport]
+    codec: CodecReport
+    fidelity: Fidelity = Field(description="the decoded archive on the evaluation cameras, which fitted nothing")
+    fitting: Fidelity = Field(description="the same on the fitting cameras, what the decisions saw")
+    psnr_input: float | None = Field(description="the input on the evaluation cameras (null: renders of itself)")
+    psnr_floor: float | None = Field(description="the promise, held by the worse of the two PSNRs when fitting")
+    cameras: Cameras
+    seconds: dict[str, float] = Field(description="per stage")
     device: str
-    config: dict
+    config: ReportConfig

@@ -74,7 +74,7 @@ def main() -> None:
     for path, floor in zip(args.scenes, floors):
         scene = load_scene(path)
         views = self_supervised_views(scene, args.train_views, args.eval_views, args.resolution, torch.zeros(3))
-        test = [views.test[i] for i in range(len(views.test))]
+        test = [views.fit[i] for i in range(len(views.fit))]
         state = LevelState.plain(canonical_frames(scene))
         print(f"{path.name}: {len(scene):,} Gaussians, SH degree {scene.sh_degree}, floor {floor:.2f} dB")
         t0 = time.perf_counter()

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from .config import CompressConfig
+from .config import PRESETS, CompressConfig, budget_for_floor
 from .scene import GaussianScene
 from .views import ViewSet, evaluate, self_supervised_views
 
@@ -59,13 +59,8 @@ def find_splat_transform() -> str | None:
     return str(exe) if exe.exists() else None
 
 
-def budget_for_floor(floor: float, nominal: float) -> float:
-    """The ``psnr_budget`` whose self-supervised floor (``CompressConfig.self_supervised_floor``) is ``floor``."""
-    return 10.0 * math.log10(1.0 + 10.0 ** ((nominal - floor) / 10.0))
-
-
 def _psnr(scene: GaussianScene, views: ViewSet) -> float:
-    return evaluate(scene, views.test, views.background)[0]
+    return evaluate(scene, views.eval, views.background).psnr
 
 
 def _run(args: list[str], timeout: float) -> None:
@@ -151,8 +146,10 @@ def bench_scene(
     # Trainers name their output point_cloud.ply or fused.ply: the folder then names the scene.
     name = ply.parent.name if ply.stem in ("point_cloud", "fused", "scene") else ply.stem
     source = load_scene(ply)
-    views = self_supervised_views(source, config.train_views, config.eval_views, config.resolution, torch.zeros(3),
-                                  seed=config.seed)  # fmt: skip
+    views = self_supervised_views(
+        source, train=config.train_views, fit=config.fit_views, eval=config.eval_views, resolution=config.resolution,
+        eval_resolution=config.eval_resolution, background=torch.zeros(3), seed=config.seed,
+    )  # fmt: skip
     rows: list[BenchRow] = []
     with tempfile.TemporaryDirectory(prefix="symgs-bench-") as tmp:
         if peers:
@@ -171,7 +168,7 @@ def bench_scene(
     for preset in presets:
         for use_mirrors in mirrors:
             say(f"{name}: {preset}, mirrors {'on' if use_mirrors else 'off'}")
-            run = replace(config, preset=preset, use_mirrors=use_mirrors, psnr_budget=_budget(preset, config))
+            run = replace(config, preset=preset, use_mirrors=use_mirrors, psnr_budget=PRESETS[preset].budget)
             rows.append(_ours(ply, name, run, views, "symgs"))
             say(_line(rows[-1]))
     if match and peers:
@@ -196,12 +193,6 @@ def _cache_file(folder: Path, ply: Path, config: CompressConfig) -> Path:
 def _line(row: BenchRow) -> str:
     return (f"  {row.entry} [{row.preset}]: {row.bytes:,} bytes ({row.ratio_to_ply:.1f}x), {row.psnr:.2f} dB, "
             f"encode {row.encode_s:.1f} s, decode {row.decode_s:.2f} s")  # fmt: skip
-
-
-def _budget(preset: str, config: CompressConfig) -> float:
-    from .config import PRESET_BUDGETS
-
-    return PRESET_BUDGETS[preset] if preset != "lossless" else config.psnr_budget
 
 
 def to_csv(rows: list[BenchRow]) -> str:

@@ -1,44 +1,87 @@
-"""Settings of the compression pipeline: one frozen object, passed down, never mutated."""
+"""Settings of a compression job: the preset table and one frozen object, decided here and nowhere else.
+
+Every door (``symgs_core.compress``, ``symgs compress``, ``POST /v1/jobs``, ``symgs submit``, the dashboard) builds
+its settings with ``CompressConfig.for_preset``: the preset's values, then the fields the caller set. The default
+preset is ``DEFAULT_PRESET``. Standard library only: the API process reads the preset table without torch.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal, get_args
 
 Preset = Literal["small", "balanced", "high", "lossless"]
 DeviceChoice = Literal["auto", "cpu", "cuda"]
-# Each preset's budget (dB) when none is given: what the command line and the service default to.
-PRESET_BUDGETS: dict[str, float] = {"small": 1.0, "balanced": 0.3, "high": 0.1, "lossless": 0.0}
+PRESET_NAMES: tuple[str, ...] = get_args(Preset)
+DEFAULT_PRESET: Preset = "balanced"
+
+
+@dataclass(frozen=True)
+class PresetSpec:
+    """What a preset promises and how it starts: ``budget`` dB of PSNR (see ``CompressConfig``), the starting
+    quantisation steps as a multiple of ``codec.QuantSteps()`` (``step_scale``; 0: float32, nothing quantised)."""
+
+    name: Preset
+    budget: float
+    step_scale: float
+    summary: str
+
+
+PRESETS: dict[str, PresetSpec] = {
+    spec.name: spec
+    for spec in (
+        PresetSpec("small", 1.0, 2.0, "smallest archives; up to 1 dB of PSNR below the input on a 30 dB scene"),
+        PresetSpec("balanced", 0.3, 1.0, "the default; up to 0.3 dB of PSNR below the input on a 30 dB scene"),
+        PresetSpec("high", 0.1, 0.5, "near-transparent; up to 0.1 dB of PSNR below the input on a 30 dB scene"),
+        PresetSpec("lossless", 0.0, 0.0, "float32 attributes, bit-exact; only mirrors may cost fidelity"),
+    )
+}
+
+
+def floor_for_budget(budget: float, nominal: float) -> float:
+    """The PSNR (dB) against renders of the input that costs ``budget`` dB on a scene of ``nominal`` dB: the
+    excess error E with 10 log10((e + E) / e) = budget, e the nominal error; +inf for a zero budget."""
+    excess = 10.0 ** (budget / 10.0) - 1.0
+    return math.inf if excess <= 0 else nominal - 10.0 * math.log10(excess)
+
+
+def budget_for_floor(floor: float, nominal: float) -> float:
+    """The budget whose floor (``floor_for_budget``) is ``floor``."""
+    return 10.0 * math.log10(1.0 + 10.0 ** ((nominal - floor) / 10.0))
 
 
 @dataclass(frozen=True)
 class CompressConfig:
-    """What a compression job may spend and must keep.
+    """What a compression job may spend and must keep. Build it with ``for_preset``.
 
-    preset        attribute codec and reductions (``PRESET_BUDGETS``): ``lossless`` stores float32 and spends the
-                  budget on mirrors alone; the others share it between mirrors, pruning, SH reduction and
-                  quantisation (``budget.SHARES``), from coarse starting steps (small) to fine ones (high).
-    psnr_budget   dB of held-out PSNR all lossy stages together may cost, below the uncompressed scene.
+    preset        the preset (``PRESETS``): its budget and starting steps; ``lossless`` stores float32 and spends
+                  the budget on mirrors alone.
+    psnr_budget   dB of PSNR all lossy stages together may cost, below the uncompressed scene (None: the preset's).
     nominal_psnr  fidelity (dB) a trained scene typically has against its own photographs (3DGS scores about 27.5
-                  on Mip-NeRF 360, 29.5 on Deep Blending, 33 on NeRF-Synthetic). Without test images the reference
+                  on Mip-NeRF 360, 29.5 on Deep Blending, 33 on NeRF-Synthetic). Without photographs the reference
                   is a render of the input, against which the input scores +inf; the budget then becomes the error
                   that, added to a scene of this nominal quality, would cost ``psnr_budget`` dB.
     max_levels    cap on mirror levels; the scene decides how many below the cap pay for themselves.
-    iterations    optimisation steps per level.
-    train_views / eval_views  self-supervised camera counts (images given: their own train/test split).
-    resolution    longest side, in pixels, of the views rendered for optimisation and evaluation.
+    iterations    optimisation steps per level (a level's fine-tune may stop earlier once it stops gaining).
+    train_views / fit_views / eval_views  camera counts of the three disjoint sets (``views``): the fine-tune trains
+                  on the first, every decision is taken on the second, and only the third is reported. With
+                  photographs, the dataset's test split is the evaluation set (at most ``eval_views`` of it).
+    resolution    longest side, in pixels, of the training views; the fitting and evaluation views are rendered at
+                  ``eval_resolution``.
     pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
     """
 
-    preset: Preset = "lossless"
-    psnr_budget: float = 0.5
+    preset: Preset = DEFAULT_PRESET
+    psnr_budget: float | None = None
     nominal_psnr: float = 30.0
     max_levels: int = 4
     iterations: int = 200
     train_views: int = 128
+    fit_views: int = 8
     eval_views: int = 8
     resolution: int = 192
+    eval_resolution: int = 256
     device: DeviceChoice = "auto"
     use_mirrors: bool = True
     pictures: bool = True
@@ -46,20 +89,46 @@ class CompressConfig:
     detect: dict = field(default_factory=dict)  # overrides of DetectConfig fields
 
     def __post_init__(self) -> None:
-        if self.preset not in PRESET_BUDGETS:
-            raise ValueError(f"preset must be one of {sorted(PRESET_BUDGETS)}, got {self.preset!r}")
-        if not 0 <= self.psnr_budget <= 60:
-            raise ValueError(f"psnr_budget must be in 0..60 dB, got {self.psnr_budget}")
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {', '.join(PRESET_NAMES)}, got {self.preset!r}")
+        if self.psnr_budget is None:
+            object.__setattr__(self, "psnr_budget", PRESETS[self.preset].budget)
+        budget = self.budget
+        if not (math.isfinite(budget) and 0 <= budget <= 60):
+            raise ValueError(f"psnr_budget must be a number of dB in 0..60, got {budget}")
         if not 0 <= self.max_levels <= 16:
             raise ValueError(f"max_levels must be in 0..16, got {self.max_levels}")
         if not 0 <= self.iterations <= 100_000:
             raise ValueError(f"iterations must be in 0..100000, got {self.iterations}")
-        if not (1 <= self.train_views <= 1000 and 1 <= self.eval_views <= 1000):
-            raise ValueError("train_views and eval_views must be in 1..1000")
-        if not 16 <= self.resolution <= 4096:
-            raise ValueError(f"resolution must be in 16..4096, got {self.resolution}")
+        for name in ("train_views", "fit_views", "eval_views"):
+            if not 1 <= getattr(self, name) <= 1000:
+                raise ValueError(f"{name} must be in 1..1000, got {getattr(self, name)}")
+        for name in ("resolution", "eval_resolution"):
+            if not 16 <= getattr(self, name) <= 4096:
+                raise ValueError(f"{name} must be in 16..4096, got {getattr(self, name)}")
+
+    @classmethod
+    def for_preset(cls, preset: str | None = None, **overrides: Any) -> CompressConfig:
+        """The settings of ``preset`` (default ``DEFAULT_PRESET``) with every override that is not None.
+
+        ValueError names an unknown setting or a value out of range.
+        """
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown settings {', '.join(unknown)}")
+        given = {k: v for k, v in overrides.items() if v is not None}
+        return cls(preset=preset or DEFAULT_PRESET, **given)  # type: ignore[arg-type]
+
+    @property
+    def budget(self) -> float:
+        """``psnr_budget``, resolved (never None after construction)."""
+        return float(self.psnr_budget if self.psnr_budget is not None else PRESETS[self.preset].budget)
+
+    @property
+    def quantized(self) -> bool:
+        return PRESETS[self.preset].step_scale > 0
 
     def self_supervised_floor(self) -> float:
         """Minimum PSNR (dB) against renders of the input that keeps the loss within the budget."""
-        excess = 10.0 ** (self.psnr_budget / 10.0) - 1.0
-        return math.inf if excess <= 0 else self.nominal_psnr - 10.0 * math.log10(excess)
+        return floor_for_budget(self.budget, self.nominal_psnr)

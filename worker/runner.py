@@ -9,16 +9,23 @@ task's ``on_failure`` hook, the one place that marks a job failed.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from redis import RedisError
+
+from api_schemas import JobMetrics, MirrorSummary
 
 from .settings import Settings
 from .storage import Storage
 from .store import JobRecord, JobStore
+
+if TYPE_CHECKING:
+    from symgs_core.pipeline import CompressResult
+    from symgs_core.report import Report
 
 Outcome = Literal["succeeded", "cancelled", "skipped", "lost"]
 _CANCEL_POLL_S = 0.5  # should_stop is called often; ask Redis at most this often
@@ -92,25 +99,29 @@ class _StopCheck:
         return self._cancelled
 
 
-def headline(report: dict) -> tuple[list[dict], dict]:
+def headline(report: Report) -> tuple[list[MirrorSummary], JobMetrics]:
     """Accepted mirrors and the headline metrics of a pipeline report, as the Job model holds them."""
+    finite = lambda x: x if math.isfinite(x) else None  # noqa: E731 - JSON has no infinity
     mirrors = [
-        {k: level[k] for k in ("level", "normal", "offset", "left", "right", "psnr_after")}
-        for level in report.get("levels", [])
-        if level.get("accepted")
-    ]
-    keys = ("input_bytes", "output_bytes", "ratio_to_ply", "ratio_to_baseline", "psnr", "ssim")
-    metrics = {k: report[k] for k in keys}
-    metrics["seconds"] = float(sum(report.get("seconds", {}).values()))
+        MirrorSummary(level=lv.level, normal=list(lv.normal), offset=lv.offset, left=lv.left, right=lv.right,
+                      psnr_after=finite(lv.psnr_after))
+        for lv in report.accepted_levels
+    ]  # fmt: skip
+    metrics = JobMetrics(
+        input_bytes=report.input_bytes, output_bytes=report.output_bytes, ratio_to_ply=report.ratio_to_ply or 0.0,
+        ratio_to_baseline=report.ratio_to_baseline, psnr=finite(report.fidelity.psnr),
+        psnr_object=finite(report.fidelity.psnr_object), ssim=report.fidelity.ssim,
+        seconds=float(sum(report.seconds.values())),
+    )  # fmt: skip
     return mirrors, metrics
 
 
-def _write_results(storage: Storage, job_id: str, result) -> None:  # noqa: ANN001 - symgs_core CompressResult
+def _write_results(storage: Storage, job_id: str, result: CompressResult) -> None:
     from symgs_core.export.formats import EXPORTS
     from symgs_core.pipeline import decompress
 
     storage.write_artifact(job_id, "result.symgs", result.archive)
-    storage.write_artifact(job_id, "report.json", json.dumps(result.report, indent=1).encode())
+    storage.write_artifact(job_id, "report.json", json.dumps(result.report.as_json(), indent=1).encode())
     for name, png in result.images.items():
         storage.write_artifact(job_id, f"charts/{name}.png", png)
     # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
@@ -164,7 +175,7 @@ def _run_leased(
 
     folder = storage.job_dir(job_id)
     try:
-        config = CompressConfig(**record.params.pipeline_overrides(), device=device)
+        config = CompressConfig.for_preset(**record.params.pipeline_overrides(), device=device)
     except ValueError as exc:  # a combination the schema's per-field bounds let through
         raise JobInputError("bad_params", f"params: {exc}") from None
     images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
@@ -189,8 +200,8 @@ def _run_leased(
     mirrors, metrics = headline(result.report)
     artifacts = storage.artifact_names(job_id)
     done = store.transition(
-        job_id, "succeeded", stage="done", progress=1.0, message="", mirrors=mirrors, metrics=metrics,
-        artifacts=artifacts,
+        job_id, "succeeded", stage="done", progress=1.0, message="", artifacts=artifacts,
+        mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump(),
     )  # fmt: skip
     if done is not None and done.finished_at is not None:
         store.record_duration(done.finished_at - started)

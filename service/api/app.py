@@ -22,7 +22,7 @@ from worker.store import JobStore
 from ..dashboard.routes import router as dashboard_router
 from .errors import install_handlers
 from .metrics import make_registry
-from .routes import events, jobs, ops, results
+from .routes import events, jobs, ops, presets, results
 
 API_VERSION = "1.0.0"
 DESCRIPTION = """\
@@ -65,7 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.celery = make_celery(settings)
     app.state.registry = make_registry(store, settings)
     install_handlers(app)
-    for module in (jobs, events, results, ops):
+    for module in (jobs, presets, events, results, ops):
         app.include_router(module.router)
     app.include_router(dashboard_router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]

@@ -30,17 +30,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _bench(args: argparse.Namespace) -> int:
     from symgs_core.bench import bench_scene, write_outputs
-    from symgs_core.config import PRESET_BUDGETS, CompressConfig
+    from symgs_core.config import PRESETS, CompressConfig
 
     presets = [p.strip() for p in args.presets.split(",") if p.strip()]
-    unknown = [p for p in presets if p not in PRESET_BUDGETS]
+    unknown = [p for p in presets if p not in PRESETS]
     if unknown:
-        raise CliError(f"unknown presets {unknown}; known: {sorted(PRESET_BUDGETS)}")
+        raise CliError(f"unknown presets {unknown}; known: {', '.join(PRESETS)}")
     missing = [str(s) for s in args.scenes if not s.is_file()]
     if missing:
         raise CliError(f"scene files not found: {', '.join(missing)}")
     try:
-        config = CompressConfig(
+        config = CompressConfig.for_preset(
             resolution=args.resolution, train_views=args.train_views, eval_views=args.eval_views,
             iterations=args.iterations, max_levels=args.max_levels, device=args.device, pictures=False,
         )  # fmt: skip

@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
 from .parser import CliError
+
+if TYPE_CHECKING:
+    from symgs_core.config import CompressConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,15 +25,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--report", type=Path, help="write the JSON report here")
     p.add_argument("--pictures", type=Path, help="write the PNG pictures and charts (as a job's) into this folder")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
-    p.add_argument("--preset", choices=["small", "balanced", "high", "lossless"], default="balanced",
-                   help="attribute codec and reductions (default balanced); lossless stores float32")
-    p.add_argument("--psnr-budget", type=float, default=None,
-                   help="dB of held-out PSNR all lossy stages may cost together (default: the preset's)")
-    p.add_argument("--max-levels", type=int, default=4)
-    p.add_argument("--iterations", type=int, default=200, help="optimisation steps per level")
-    p.add_argument("--resolution", type=int, default=192, help="longest side of training/evaluation views")
-    p.add_argument("--train-views", type=int, default=128)
-    p.add_argument("--eval-views", type=int, default=8)
+    p.add_argument("--preset", choices=PRESET_NAMES, default=DEFAULT_PRESET,
+                   help="; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items()))
+    # Left out, each setting takes the preset's value (symgs_core.config): the same job as over HTTP or Python.
+    p.add_argument("--psnr-budget", type=float, help="dB of PSNR all lossy stages may cost together")
+    p.add_argument("--max-levels", type=int, help="cap on mirror levels")
+    p.add_argument("--iterations", type=int, help="optimisation steps per level")
+    p.add_argument("--resolution", type=int, help="longest side of the training views, pixels")
+    p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
+    p.add_argument("--train-views", type=int, help="cameras the fine-tune trains on")
+    p.add_argument("--fit-views", type=int, help="cameras every decision is taken on")
+    p.add_argument("--eval-views", type=int, help="cameras the report scores (fitted on nothing)")
+    p.add_argument("--seed", type=int)
     p.add_argument("--no-mirrors", action="store_true", help="baseline: the codec alone")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_compress)
@@ -40,32 +49,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     register_evaluate(sub)
 
 
+def config_from_args(args: argparse.Namespace) -> CompressConfig:
+    """The job's settings from ``symgs compress`` arguments: the preset's, then each option given."""
+    from symgs_core.config import CompressConfig
+
+    try:
+        return CompressConfig.for_preset(
+            args.preset, psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
+            resolution=args.resolution, eval_resolution=args.eval_resolution, train_views=args.train_views,
+            fit_views=args.fit_views, eval_views=args.eval_views, seed=args.seed, device=args.device,
+            use_mirrors=False if args.no_mirrors else None, pictures=args.pictures is not None,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+
+
 def _compress(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from symgs_core.config import PRESET_BUDGETS, CompressConfig
     from symgs_core.pipeline import compress
 
     if not args.scene.is_file():
         raise CliError(f"scene file not found: {args.scene}")
     if args.images is not None and not args.images.is_dir():
         raise CliError(f"images folder not found: {args.images}")
-    try:
-        config = CompressConfig(
-            preset=args.preset,
-            psnr_budget=PRESET_BUDGETS[args.preset] if args.psnr_budget is None else args.psnr_budget,
-            max_levels=args.max_levels,
-            iterations=args.iterations,
-            resolution=args.resolution,
-            train_views=args.train_views,
-            eval_views=args.eval_views,
-            device=args.device,
-            use_mirrors=not args.no_mirrors,
-            pictures=args.pictures is not None,
-        )
-    except ValueError as exc:
-        raise CliError(str(exc)) from exc
+    config = config_from_args(args)
     console = Console(stderr=True)
     with Progress(
         TextColumn("{task.description}"),
@@ -87,19 +96,19 @@ def _compress(args: argparse.Namespace) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_bytes(result.archive)
     if args.report is not None:
-        args.report.write_text(json.dumps(result.report, indent=2))
+        args.report.write_text(json.dumps(result.report.as_json(), indent=2))
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
         for name, png in result.images.items():
             (args.pictures / f"{name}.png").write_bytes(png)
     r = result.report
-    levels = [lv for lv in r["levels"] if lv["accepted"]]
-    ratio = f"{r['ratio_to_ply']:.2f}x vs PLY, " if r["ratio_to_ply"] else ""
-    psnr = "lossless" if r["psnr"] is None else f"{r['psnr']:.2f} dB"
+    ratio = f"{r.ratio_to_ply:.2f}x vs PLY, " if r.ratio_to_ply else ""
+    db = lambda x: "lossless" if math.isinf(x) else f"{x:.2f} dB"  # noqa: E731
     print(
-        f"{args.output}: {r['output_bytes']} bytes ({ratio}{r['ratio_to_baseline']:.2f}x vs baseline), "
-        f"{len(levels)} mirror level(s), {r['gaussians']['stored']}/{r['gaussians']['input']} Gaussians stored, "
-        f"PSNR {psnr}, SSIM {r['ssim']:.4f} against {r['psnr_reference']}"
+        f"{args.output}: {r.output_bytes} bytes ({ratio}{r.ratio_to_baseline:.2f}x vs baseline), "
+        f"{len(r.accepted_levels)} mirror level(s), {r.gaussians.stored}/{r.gaussians.input} Gaussians stored; "
+        f"on {r.cameras.evaluation.count} evaluation cameras against {r.cameras.evaluation.source}: "
+        f"PSNR {db(r.fidelity.psnr)} (object {db(r.fidelity.psnr_object)}), SSIM {r.fidelity.ssim:.4f}"
     )
     return 0
 
@@ -130,8 +139,9 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="PSNR/SSIM of a decoded scene against renders of the original")
     e.add_argument("reference", type=Path, help="the uncompressed scene (.ply)")
     e.add_argument("candidate", type=Path, help=f"a .symgs archive or a decoded scene: {extensions()}")
-    e.add_argument("--views", type=int, default=8, help="held-out cameras around the scene")
+    e.add_argument("--views", type=int, default=8, help="evaluation cameras around the scene, near and far")
     e.add_argument("--resolution", type=int, default=256)
+    e.add_argument("--seed", type=int, default=0, help="another seed turns the camera rig: other cameras")
     e.add_argument("--json", action="store_true", help="print the figures as JSON")
     e.set_defaults(func=_evaluate)
 
@@ -151,19 +161,26 @@ def _evaluate(args: argparse.Namespace) -> int:
         reference = load_scene(args.reference)
         is_archive = args.candidate.suffix.lower() == ".symgs"
         candidate = decompress(args.candidate) if is_archive else import_scene(args.candidate)
-        views = self_supervised_views(reference, 1, args.views, args.resolution, torch.zeros(3))
+        views = self_supervised_views(
+            reference, train=1, fit=1, eval=args.views, resolution=16, eval_resolution=args.resolution,
+            background=torch.zeros(3), seed=args.seed,
+        )  # fmt: skip
     except ValueError as exc:  # PlyError, ArchiveError, SpzError, ... all name the problem
         raise CliError(str(exc)) from exc
-    value, ssim_value = evaluate(candidate, views.test, views.background)
+    fidelity = evaluate(candidate, views.eval, views.background)
+    finite = lambda x: None if math.isinf(x) else x  # noqa: E731
     figures = {
         "reference": str(args.reference), "candidate": str(args.candidate), "bytes": args.candidate.stat().st_size,
-        "gaussians": len(candidate), "psnr": None if value == float("inf") else value, "ssim": ssim_value,
-        "views": args.views, "resolution": args.resolution,
+        "gaussians": len(candidate), "psnr": finite(fidelity.psnr), "psnr_object": finite(fidelity.psnr_object),
+        "ssim": fidelity.ssim, "views": args.views, "resolution": args.resolution, "seed": args.seed,
     }  # fmt: skip
     if args.json:
         print(json.dumps(figures))
     else:
-        psnr = "identical renders" if figures["psnr"] is None else f"PSNR {value:.2f} dB"
-        print(f"{args.candidate}: {figures['bytes']} bytes, {len(candidate)} Gaussians, {psnr}, SSIM {ssim_value:.4f}"
-              f" over {args.views} views at {args.resolution}px")
+        psnr = (
+            "identical renders" if figures["psnr"] is None
+            else f"PSNR {fidelity.psnr:.2f} dB (object {fidelity.psnr_object:.2f} dB)"
+        )  # fmt: skip
+        print(f"{args.candidate}: {figures['bytes']} bytes, {len(candidate)} Gaussians, {psnr}, "
+              f"SSIM {fidelity.ssim:.4f} over {args.views} views at {args.resolution}px")  # fmt: skip
     return 0

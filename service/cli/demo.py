@@ -15,8 +15,8 @@ from .progress import follow, jobs_table
 from .stack import LocalStack, StackError
 
 # Small enough to finish in about a minute on two CPU cores, large enough to find and keep a mirror.
-DEMO_PARAMS = {"preset": "balanced", "iterations": 40, "train_views": 6, "eval_views": 3, "resolution": 96,
-               "max_levels": 2, "device": "cpu"}  # fmt: skip
+DEMO_PARAMS = {"iterations": 40, "train_views": 6, "fit_views": 3, "eval_views": 3, "resolution": 96,
+               "eval_resolution": 96, "max_levels": 2, "device": "cpu"}  # fmt: skip
 
 
 def make_scene(path: Path, gaussians: int) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from ..report import Steps
 from .masks import MASKS
 from .palette import RowWeights, ShPaletteCodec
 from .quantize import OpacityCodec, PositionCodec, RotationCodec, ScalarGridCodec, ShDcCodec, ShRestCodec
@@ -72,11 +73,8 @@ class QuantSteps:
         """The archive codec writing a stored set whose bounding box's longest side is ``extent`` with these steps."""
         return ArchiveCodec(name, self.codecs(extent))
 
-    def as_dict(self) -> dict:
-        return {
-            "position": self.position, "rotation": self.rotation, "scale": self.scale, "opacity": self.opacity,
-            "dc": self.dc, "sh": list(self.sh), "sh_palette": self.sh_palette,
-        }  # fmt: skip
+    def report(self) -> Steps:
+        return Steps(self.position, self.rotation, self.scale, self.opacity, self.dc, tuple(self.sh), self.sh_palette)
 
 
 # Readers of this build know every quantising codec, whatever step a writer chose.

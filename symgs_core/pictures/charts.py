@@ -1,9 +1,10 @@
-"""Rate-distortion and speed-accuracy charts of a compression job, from its level records and report.
+"""Rate-distortion and speed-accuracy charts of a compression job, from its report.
 
 The points follow the job: the input, each mirror level (its PSNR as applied and after fine-tuning), each later
-stage the report accounts for (``report["stages"]``: pruning, SH reduction, quantisation, ...), and the final
-archive. PSNR is in dB against the report's reference (renders of the input, or the dataset's test images); ``None``
-stands for an infinite PSNR (a result identical to its reference) and is drawn above the finite range.
+stage the report accounts for (``Report.stages``: pruning, SH reduction, quantisation, ...), and the final archive,
+on the fitting cameras the decisions saw and on the evaluation cameras that fitted nothing. PSNR is in dB against
+the report's reference (renders of the input, or photographs); ``None`` stands for an infinite PSNR (a result
+identical to its reference) and is drawn above the finite range.
 """
 
 from __future__ import annotations
@@ -17,11 +18,11 @@ from matplotlib.axes import Axes
 from matplotlib.ticker import EngFormatter
 from matplotlib.transforms import blended_transform_factory
 
-from ..pipeline.levels import LevelRecord
+from ..report import Report
 from ._png import new_figure, png_bytes
 from .palette import NEUTRAL, level_colour
 
-PointKind = Literal["input", "applied", "level", "rolled_back", "stage", "final"]
+PointKind = Literal["input", "applied", "level", "rolled_back", "stage", "final", "evaluated"]
 # Stages whose point is drawn elsewhere: the mirror stage is the levels, entropy coding is the final archive.
 _FOLDED_STAGES = {"mirrors", "entropy_coding"}
 
@@ -51,18 +52,18 @@ def _db(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(value)
 
 
-def _lossless_span(records: Sequence[LevelRecord], report: dict) -> tuple[tuple[int, float], tuple[int, float]]:
+def _lossless_span(report: Report) -> tuple[tuple[int, float], tuple[int, float]]:
     """(Gaussians stored, lossless archive bytes) of the input and after the accepted levels.
 
     With stage accounting the report measures both; without it, the plain archive of the input (the baseline) and
     the final archive are the two measured ends."""
-    mirrors = next((s for s in report.get("stages") or [] if s.get("stage") == "mirrors"), None)
-    n_in = report["gaussians"]["input"]
-    accepted = [r for r in records if r.accepted]
+    mirrors = next((s for s in report.stages if s.stage == "mirrors"), None)
+    n_in = report.gaussians.input
+    accepted = report.accepted_levels
     n_levels = accepted[-1].stored_after if accepted else n_in
     if mirrors is not None:
-        return (n_in, float(mirrors["bytes_before"])), (n_levels, float(mirrors["bytes_after"]))
-    return (n_in, float(report["baseline_bytes"])), (report["gaussians"]["stored"], float(report["output_bytes"]))
+        return (n_in, float(mirrors.bytes_before)), (n_levels, float(mirrors.bytes_after))
+    return (n_in, float(report.baseline_bytes)), (report.gaussians.stored, float(report.output_bytes))
 
 
 def _bytes_for(stored: int, span: tuple[tuple[int, float], tuple[int, float]]) -> float:
@@ -74,16 +75,16 @@ def _bytes_for(stored: int, span: tuple[tuple[int, float], tuple[int, float]]) -
     return b0 + (b1 - b0) * (n0 - stored) / (n0 - n1)
 
 
-def job_points(records: Sequence[LevelRecord], report: dict) -> list[ChartPoint]:
+def job_points(report: Report) -> list[ChartPoint]:
     """Every point of the job's path, in time order.
 
     Detection time is reported for all levels together, so each level gets an equal share of it, before its
     fine-tuning."""
-    seconds = report["seconds"]
-    span = _lossless_span(records, report)
+    seconds, records = report.seconds, report.levels
+    span = _lossless_span(report)
     t = seconds.get("load", 0.0) + seconds.get("views", 0.0)
-    input_label = "input (lossless archive)" if span[0][1] != report["baseline_bytes"] else "baseline (plain codec)"
-    points = [ChartPoint("input", input_label, None, span[0][1], t, _db(report.get("psnr_input")))]
+    input_label = "input (lossless archive)" if span[0][1] != report.baseline_bytes else "baseline (plain codec)"
+    points = [ChartPoint("input", input_label, None, span[0][1], t, _db(report.psnr_input))]
     detect_share = seconds.get("detect", 0.0) / max(len(records), 1)
     for r in records:
         t += detect_share
@@ -94,16 +95,17 @@ def job_points(records: Sequence[LevelRecord], report: dict) -> list[ChartPoint]
         kind: PointKind = "level" if r.accepted else "rolled_back"
         label = f"level {r.level}" + ("" if r.accepted else " (rolled back)")
         points.append(ChartPoint(kind, label, r.level, size, t, _db(r.psnr_after), estimated))
-    stages = report.get("stages") or []
-    for s in stages:
-        t += float(s.get("seconds") or 0.0)
-        if s.get("stage") not in _FOLDED_STAGES:
-            label = str(s["stage"]).replace("_", " ")
-            points.append(ChartPoint("stage", label, None, float(s["bytes_after"]), t, _db(s.get("psnr_after"))))
-    if not stages:
+    for s in report.stages:
+        t += s.seconds
+        if s.stage not in _FOLDED_STAGES:
+            label = s.stage.replace("_", " ")
+            points.append(ChartPoint("stage", label, None, float(s.bytes_after), t, _db(s.psnr_after)))
+    if not report.stages:
         t += seconds.get("encode", 0.0)
     t += seconds.get("evaluate", 0.0)
-    points.append(ChartPoint("final", "final archive", None, float(report["output_bytes"]), t, _db(report["psnr"])))
+    size = float(report.output_bytes)
+    points.append(ChartPoint("final", "final archive", None, size, t, _db(report.fitting.worst)))
+    points.append(ChartPoint("evaluated", "final, evaluation cameras", None, size, t, _db(report.fidelity.worst)))
     return points
 
 
@@ -136,6 +138,8 @@ def _style(point: ChartPoint, rolled_back: set[int], stage_index: int) -> dict:
         return {"marker": "s", "color": "#222222"}
     if point.kind == "final":
         return {"marker": "*", "color": "#222222", "markersize": 15, "zorder": 3}
+    if point.kind == "evaluated":
+        return {"marker": "*", "color": "#E07A1F", "markersize": 12, "zorder": 5}
     if point.kind == "stage":
         return {"marker": _STAGE_MARKERS[stage_index % len(_STAGE_MARKERS)], "color": "#3D5A80"}
     if point.kind == "rolled_back" or point.level in rolled_back:
@@ -167,26 +171,26 @@ def _draw(ax: Axes, points: Sequence[ChartPoint], top: float, x: Callable[[Chart
         )  # fmt: skip
 
 
-def _finish(ax: Axes, report: dict, floor: float | None, title: str) -> None:
+def _finish(ax: Axes, report: Report, floor: float | None, title: str) -> None:
     if floor is not None:
         ax.axhline(floor, color="#B22222", linestyle="--", linewidth=1, label="PSNR floor (budget)")
-    ax.set_ylabel(f"PSNR (dB) against {report.get('psnr_reference', 'the reference')}")
+    ax.set_ylabel(f"PSNR (dB) against {report.cameras.evaluation.source}")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.figure.legend(fontsize=8, loc="outside right upper")
 
 
-def rate_distortion_png(records: Sequence[LevelRecord], report: dict, width: int = 820, height: int = 420) -> bytes:
+def rate_distortion_png(report: Report, width: int = 820, height: int = 420) -> bytes:
     """PSNR against archive bytes along the job's path; hollow markers are sizes estimated from the Gaussians stored.
     A vertical line marks the baseline (the codec alone on the input) when it is not the input point."""
-    points = [p for p in job_points(records, report) if p.bytes is not None]
-    floor = _db(report.get("psnr_floor"))
+    points = [p for p in job_points(report) if p.bytes is not None]
+    floor = _db(report.psnr_floor)
     fig = new_figure(width, height)
     ax = fig.add_subplot()
     top = _psnr_axis(ax, points, floor)
     _draw(ax, points, top, lambda p: p.bytes, hollow=True)
     if points[0].label != "baseline (plain codec)":
-        ax.axvline(report["baseline_bytes"], color="#222222", linestyle=":", label="baseline: the codec on the input")
+        ax.axvline(report.baseline_bytes, color="#222222", linestyle=":", label="baseline: the codec on the input")
     ax.xaxis.set_major_formatter(EngFormatter(unit="B"))
     ax.set_xlabel("archive size (hollow markers: estimated from the Gaussians stored)")
     ax.margins(x=0.12)
@@ -194,12 +198,11 @@ def rate_distortion_png(records: Sequence[LevelRecord], report: dict, width: int
     return png_bytes(fig)
 
 
-def _stage_bands(ax: Axes, report: dict) -> None:
-    seconds = report["seconds"]
+def _stage_bands(ax: Axes, report: Report) -> None:
+    seconds = report.seconds
     bands = [("load", seconds.get("load", 0.0)), ("views", seconds.get("views", 0.0))]
     bands.append(("levels", seconds.get("detect", 0.0) + seconds.get("optimize", 0.0)))
-    stages = report.get("stages") or []
-    bands += [(str(s["stage"]), float(s.get("seconds") or 0.0)) for s in stages] or [
+    bands += [(s.stage, s.seconds) for s in report.stages] or [
         ("encode", seconds.get("encode", 0.0))
     ]
     bands.append(("evaluate", seconds.get("evaluate", 0.0)))
@@ -217,11 +220,11 @@ def _stage_bands(ax: Axes, report: dict) -> None:
         t += width
 
 
-def speed_accuracy_png(records: Sequence[LevelRecord], report: dict, width: int = 820, height: int = 420) -> bytes:
+def speed_accuracy_png(report: Report, width: int = 820, height: int = 420) -> bytes:
     """PSNR against the job's cumulative seconds, over shaded stage bands: each level's drop when its mirror is
     applied and its recovery by fine-tuning, then each later stage."""
-    points = job_points(records, report)
-    floor = _db(report.get("psnr_floor"))
+    points = job_points(report)
+    floor = _db(report.psnr_floor)
     fig = new_figure(width, height)
     ax = fig.add_subplot()
     top = _psnr_axis(ax, points, floor)

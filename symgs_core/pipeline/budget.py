@@ -16,19 +16,19 @@ steps, 1,184,853 after all three (BENCHMARKS.md, Codec: ``benchmarks/bench_steps
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
 from ..codec.order import coding_order, grid_cells
 from ..codec.quantize import band_slices
 from ..codec.steps import QuantSteps
 from ..metrics import mse_to_psnr, psnr_to_mse
 from ..scene import GaussianScene
-from ..views import evaluate
+from ..views import View, evaluate
 from .state import LevelState
 
 # Mirrors lead: on playbot (125k) a 60% share kept a level that 40% refused, and the archive came out 9% smaller.
@@ -53,10 +53,11 @@ def extent_of(stored: GaussianScene) -> float:
 
 
 def held_out_psnr(
-    state: LevelState, stored: GaussianScene, test: list[tuple[Camera, Tensor]], background: Tensor
+    state: LevelState, stored: GaussianScene, test: Sequence[View], background: Tensor
 ) -> float:
-    """PSNR on the held-out views of ``state``'s levels with ``stored`` (a decoded copy) in place of its stored set."""
-    return evaluate(LevelState(stored, state.normals, state.offsets, state.bits).expanded(), test, background)[0]
+    """PSNR (the worse of full frame and object pixels) on the fitting views of ``state``'s levels with ``stored``
+    (a decoded copy) in place of its stored set."""
+    return evaluate(LevelState(stored, state.normals, state.offsets, state.bits).expanded(), test, background).worst
 
 
 def quantized(stored: GaussianScene, steps: QuantSteps, sections: tuple[str, ...] | None = None) -> GaussianScene:
@@ -114,7 +115,7 @@ def _times(steps: QuantSteps, attribute: str, factor: float) -> QuantSteps:
 
 
 def balance_steps(
-    state: LevelState, test: list[tuple[Camera, Tensor]], background: Tensor, *, start: QuantSteps, psnr_before: float
+    state: LevelState, test: Sequence[View], background: Tensor, *, start: QuantSteps, psnr_before: float
 ) -> Balanced:
     """Steps that give every coded component the same share of the error, measured on this scene's renders.
 
@@ -170,7 +171,7 @@ class QuantFit:
 
 def fit_quantization(
     state: LevelState,
-    test: list[tuple[Camera, Tensor]],
+    test: Sequence[View],
     background: Tensor,
     *,
     floor: float,
@@ -219,7 +220,7 @@ def fit_quantization(
 
 def coarsen_one_by_one(
     state: LevelState,
-    test: list[tuple[Camera, Tensor]],
+    test: Sequence[View],
     background: Tensor,
     fit: QuantFit,
     *,
@@ -271,7 +272,7 @@ def palette_start(sh_rest: Tensor) -> int:
 
 def fit_steps(
     state: LevelState,
-    test: list[tuple[Camera, Tensor]],
+    test: Sequence[View],
     background: Tensor,
     *,
     floor: float,

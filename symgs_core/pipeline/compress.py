@@ -15,10 +15,11 @@ from ..cameras import COORDINATE_CONVENTION, scene_bounds
 from ..codec import decode_archive, expand_archive
 from ..config import CompressConfig
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
+from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
-from ..views import ViewSet, dataset_views, evaluate, self_supervised_views
-from .encode import mirror_floor, reduce_and_encode, write_archive
-from .levels import LevelRecord, run_levels
+from ..views import dataset_views, evaluate, self_supervised_views
+from .encode import Coded, mirror_floor, reduce_and_encode, write_archive
+from .levels import run_levels
 from .state import LevelState
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
@@ -34,7 +35,7 @@ _STAGES = {
 @dataclass
 class CompressResult:
     archive: bytes
-    report: dict
+    report: Report
     images: dict[str, bytes] = field(default_factory=dict)
 
 
@@ -93,10 +94,11 @@ def compress(
 ) -> CompressResult:
     """Compress a scene (or a .ply path) into a ``.symgs`` archive and a report.
 
-    Mirror levels are accepted while they keep the held-out PSNR within ``config.psnr_budget``; with
-    ``checkpoint_dir`` every level decision is saved there and a rerun with the same inputs resumes after it.
+    ``config`` defaults to ``CompressConfig.for_preset()``, the default preset. Decisions hold the budget's floor on
+    the fitting cameras; the report scores the evaluation cameras, which fitted nothing. With ``checkpoint_dir``
+    every level decision is saved there and a rerun with the same inputs resumes after it.
     """
-    config = config or CompressConfig()
+    config = config or CompressConfig.for_preset()
     report = _Reporter(progress, should_stop)
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
@@ -111,48 +113,48 @@ def compress(
     report("views", 0.0, "preparing views")
     background = torch.zeros(3, device=device)
     if images is not None:
-        views: ViewSet = dataset_views(images, config.resolution, background, device, max_test=config.eval_views)
-        reference_psnr, _ = evaluate(source, views.test, background)
-        floor = reference_psnr - config.psnr_budget
+        views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
+                              resolution=config.eval_resolution, background=background)  # fmt: skip
+        reference = evaluate(source, views.fit, background).worst
+        floor = reference - config.budget
     else:
         views = self_supervised_views(
-            source, config.train_views, config.eval_views, config.resolution, background, seed=config.seed
-        )
-        reference_psnr, floor = math.inf, config.self_supervised_floor()
+            source, train=config.train_views, fit=config.fit_views, eval=config.eval_views,
+            resolution=config.resolution, eval_resolution=config.eval_resolution, background=background,
+            seed=config.seed,
+        )  # fmt: skip
+        reference, floor = math.inf, config.self_supervised_floor()
     report.timed("views", time.perf_counter() - t0)
 
     _, radius = scene_bounds(source.means.detach().cpu())
-    meta = {
-        "source": name,
-        "input_gaussians": len(source),
-        "sh_degree": source.sh_degree,
-        "coordinate_convention": COORDINATE_CONVENTION,
-    }
+    # What the archive carries besides the scene; the same job gives the same bytes whichever door it came by.
+    meta = {"input_gaussians": len(source), "sh_degree": source.sh_degree,
+            "coordinate_convention": COORDINATE_CONVENTION}  # fmt: skip
     max_levels = config.max_levels if config.use_mirrors else 0
     state, records = run_levels(
         source,
         views,
         config=replace(config, max_levels=max_levels),
-        floor=mirror_floor(config, floor, reference_psnr),
+        floor=mirror_floor(config, floor, reference),
         extent=radius,
         report=report,
         checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
         fingerprint=_fingerprint(source, config, images),
-        size_of=(lambda st: len(write_archive(st, meta))) if config.preset == "lossless" else None,
+        size_of=(lambda st: len(write_archive(st, meta))) if not config.quantized else None,
     )
 
     t0 = time.perf_counter()
     report("encode", 0.0, "encoding archive")
 
-    def encode(levels: LevelState):  # noqa: ANN202 - stages.Coded
+    def encode(levels: LevelState) -> Coded:
         return reduce_and_encode(
-            LevelState.plain(source), levels, views.train, views.test, background, config=config, floor=floor,
-            reference=reference_psnr, extent=radius, meta=meta, report=report,
+            LevelState.plain(source), levels, views.train, views.fit, background, config=config, floor=floor,
+            reference=reference, extent=radius, meta=meta, report=report,
         )  # fmt: skip
 
     coded = encode(state)
     plain_codec_bytes = None
-    if state.normals.shape[0] and config.preset != "lossless":
+    if state.normals.shape[0] and config.quantized:
         # Mirrors spend budget the quantiser could have spent: keep them only if the whole result is smaller than
         # the same stages without them (a scene is never made worse than the plain codec makes it).
         report("encode", 0.5, "encoding without mirrors, to compare")
@@ -160,49 +162,51 @@ def compress(
         plain_codec_bytes = len(plain.archive)
         if plain_codec_bytes <= len(coded.archive):
             coded = plain
-            for record in records:
-                if record.accepted:
-                    record.accepted = False
-                    record.reason = "within budget, but the plain codec alone made a smaller archive"
-    state, archive, baseline = coded.state, coded.archive, coded.baseline
+            why = "within budget, but the plain codec alone made a smaller archive"
+            records = [replace(r, accepted=False, reason=why) if r.accepted else r for r in records]
+    archive = coded.archive
     report.timed("encode", time.perf_counter() - t0)
 
     t0 = time.perf_counter()
     report("evaluate", 0.0, "evaluating the decoded scene")
     decoded = expand_archive(decode_archive(archive)).to(device)
-    final_psnr, final_ssim = evaluate(decoded, views.test, background)
+    fidelity = evaluate(decoded, views.eval, background)
+    fitting = evaluate(decoded, views.fit, background)
+    psnr_input = evaluate(source, views.eval, background).worst if images is not None else math.inf
     report.timed("evaluate", time.perf_counter() - t0)
 
-    out = {
-        "input_bytes": input_bytes,
-        "output_bytes": len(archive),
-        "baseline_bytes": len(baseline),
-        "ratio_to_ply": input_bytes / len(archive) if input_bytes else None,
-        "ratio_to_baseline": len(baseline) / len(archive),
-        "plain_codec_bytes": plain_codec_bytes,
-        "gaussians": {"input": len(source), "stored": len(state.stored), "decoded": len(decoded)},
-        "levels": [r.as_dict() for r in records],
-        "stages": coded.stages,
-        "codec": {"name": coded.codec, "preset": config.preset, "quantization": coded.quantization},
-        "psnr": final_psnr,
-        "ssim": final_ssim,
-        "psnr_input": reference_psnr,
-        "psnr_floor": floor,
-        "psnr_reference": views.source,
-        "seconds": report.seconds,
-        "device": str(device),
-        "config": asdict(config),
-    }
-    images: dict[str, bytes] = {}
+    result = Report(
+        scene=name,
+        input_bytes=input_bytes,
+        output_bytes=len(archive),
+        baseline_bytes=len(coded.baseline),
+        plain_codec_bytes=plain_codec_bytes,
+        ratio_to_ply=input_bytes / len(archive) if input_bytes else None,
+        ratio_to_baseline=len(coded.baseline) / len(archive),
+        gaussians=GaussianCounts(len(source), len(coded.state.stored), len(decoded)),
+        levels=tuple(records),
+        stages=tuple(coded.stages),
+        codec=coded.codec,
+        fidelity=fidelity,
+        fitting=fitting,
+        psnr_input=psnr_input,
+        psnr_floor=floor,
+        cameras=Cameras(*views.sets, disjoint=True),
+        seconds=dict(report.seconds),
+        device=str(device),
+        config=config,
+    )
+    images_out: dict[str, bytes] = {}
     if config.pictures:
         from ..pictures import job_pictures
 
         t0 = time.perf_counter()
         report("evaluate", 0.5, "drawing pictures")
-        images = job_pictures(source, decoded, views, records, _json_safe(out))
+        images_out = job_pictures(source, decoded, views, result)
         report.timed("pictures", time.perf_counter() - t0)
+        result = replace(result, seconds=dict(report.seconds))
     report("evaluate", 1.0, "done")
-    return CompressResult(archive=archive, report=_json_safe(out), images=images)
+    return CompressResult(archive=archive, report=result, images=images_out)
 
 
 def decompress(archive: bytes | str | Path) -> GaussianScene:
@@ -211,14 +215,4 @@ def decompress(archive: bytes | str | Path) -> GaussianScene:
     return expand_archive(decode_archive(bytes(data)))
 
 
-def _json_safe(value):  # noqa: ANN001, ANN202 - infinities become null so the report is strict JSON
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-__all__ = ["CompressResult", "LevelRecord", "compress", "decompress"]
+__all__ = ["CompressResult", "compress", "decompress"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from torch import Tensor
@@ -26,15 +27,18 @@ from ..codec.order import grid_cells
 from ..codec.palette import RowWeights
 from ..codec.registry import ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
-from ..config import CompressConfig
+from ..config import PRESETS, CompressConfig
 from ..mirror import Plane
+from ..report import CodecReport, StageReport
 from ..views import evaluate
-from .budget import SHARES, archive_bytes, extent_of, fit_steps, split_budget
+from .budget import archive_bytes, extent_of, fit_steps, split_budget
 from .prune import contributions, prune, reduce_sh
 from .state import LevelState
 
-# Starting steps of each preset; the search then scales them to spend the preset's budget.
-PRESET_STEPS = {"small": QuantSteps().scaled(2.0), "balanced": QuantSteps(), "high": QuantSteps().scaled(0.5)}
+
+def preset_steps(config: CompressConfig) -> QuantSteps:
+    """The preset's starting steps; the search then scales them to spend the preset's budget."""
+    return QuantSteps().scaled(PRESETS[config.preset].step_scale)
 
 
 def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lossless") -> bytes:
@@ -48,7 +52,7 @@ def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lo
 
 def mirror_floor(config: CompressConfig, floor: float, reference: float) -> float:
     """The floor the mirror levels are judged against: all of it for ``lossless``, their share otherwise."""
-    return floor if config.preset == "lossless" else split_budget(floor, reference)["mirrors"]
+    return floor if not config.quantized else split_budget(floor, reference)["mirrors"]
 
 
 def _fixed_width_bytes(state: LevelState, steps: QuantSteps) -> int:
@@ -92,17 +96,18 @@ class Coded:
     state: LevelState
     archive: bytes
     baseline: bytes
-    codec: str
-    stages: list[dict] = field(default_factory=list)
-    quantization: dict | None = None
+    codec: CodecReport
+    stages: list[StageReport] = field(default_factory=list)
 
 
-def _stage(name: str, before: int, after: int, psnr_before: float, psnr_after: float, seconds: float, **extra) -> dict:
+def _stage(
+    name: str, before: int, after: int, psnr_before: float, psnr_after: float, seconds: float, **extra: Any
+) -> StageReport:
     cost = psnr_before - psnr_after if math.isfinite(psnr_before) and math.isfinite(psnr_after) else None
-    return {
-        "stage": name, "bytes_before": before, "bytes_after": after, "saved_bytes": before - after,
-        "psnr_after": psnr_after, "cost_db": cost, "seconds": seconds, **extra,
-    }  # fmt: skip
+    return StageReport(name, before, after, before - after, psnr_after, cost, seconds, **extra)
+
+
+_LOSSLESS = CodecReport("lossless", None, None, 0)
 
 
 def _canonical(state: LevelState) -> LevelState:
@@ -114,16 +119,16 @@ def with_sh_weights(start: QuantSteps, state: LevelState, train: list) -> QuantS
     """``start`` with the render weight of each SH row of ``state`` over the training views, for the SH palette."""
     if not state.stored.sh_degree:
         return start
-    weights = contributions(state, [camera for camera, _ in train]).numpy()
+    weights = contributions(state, [view.camera for view in train]).numpy()
     return replace(start, sh_weights=RowWeights.of(state.stored.sh_rest.detach().cpu().numpy(), weights))
 
 
-def _undone(record: dict, psnr: float) -> dict:
+def _undone(record: StageReport, psnr: float) -> StageReport:
     """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing; the
-    held-out PSNR is ``psnr``, that of the state before the reductions, and ``psnr_if_kept`` what it measured."""
-    return {**record, "bytes_after": record["bytes_before"], "saved_bytes": 0, "psnr_after": psnr,
-            "psnr_if_kept": record["psnr_after"], "cost_db": 0.0, "kept": False,
-            "reason": "the archive quantised without pruning and SH reduction was smaller"}  # fmt: skip
+    fitting PSNR is ``psnr``, that of the state before the reductions, and ``psnr_if_kept`` what it measured."""
+    return replace(record, bytes_after=record.bytes_before, saved_bytes=0, psnr_after=psnr,
+                   psnr_if_kept=record.psnr_after, cost_db=0.0, kept=False,
+                   reason="the archive quantised without pruning and SH reduction was smaller")  # fmt: skip
 
 
 def reduce_and_encode(
@@ -144,13 +149,12 @@ def reduce_and_encode(
     t0 = time.perf_counter()
     input_bytes = len(write_archive(source_state, meta))
     mirrored_bytes = len(write_archive(state, meta)) if state.normals.shape[0] else input_bytes
-    psnr = evaluate(state.expanded(), test, background)[0] if state.normals.shape[0] else reference
-    stages = [_stage("mirrors", input_bytes, mirrored_bytes, reference, psnr, time.perf_counter() - t0,
-                     levels=int(state.normals.shape[0]))]  # fmt: skip
-    if config.preset == "lossless":
+    psnr = evaluate(state.expanded(), test, background).worst if state.normals.shape[0] else reference
+    stages = [_stage("mirrors", input_bytes, mirrored_bytes, reference, psnr, time.perf_counter() - t0)]
+    if not config.quantized:
         archive = write_archive(state, meta)
-        stages.append(_stage("entropy_coding", mirrored_bytes, len(archive), psnr, psnr, 0.0, codec="lossless"))
-        return Coded(state, archive, write_archive(source_state, meta), "lossless", stages)
+        stages.append(_stage("entropy_coding", mirrored_bytes, len(archive), psnr, psnr, 0.0))
+        return Coded(state, archive, write_archive(source_state, meta), _LOSSLESS, stages)
 
     floors = split_budget(floor, reference)
     mirrored, mirrored_psnr = state, psnr
@@ -178,7 +182,7 @@ def reduce_and_encode(
     quantization_floor = floors["quantization"]
     reduced, exact = state is not mirrored, state
     state = _canonical(state)
-    start = with_sh_weights(PRESET_STEPS[config.preset], state, train)
+    start = with_sh_weights(preset_steps(config), state, train)
     fit = fit_steps(state, test, background, floor=quantization_floor, start=start, psnr_before=psnr)
     if reduced:
         # Pruning and SH reduction spend budget the quantiser could have spent: they stay only if the archive with
@@ -187,30 +191,27 @@ def reduce_and_encode(
         report("encode", 0.6, "fitting quantisation steps without pruning and SH reduction, to compare")
         direct = _canonical(mirrored)
         direct_fit = fit_steps(direct, test, background, floor=quantization_floor,
-                               start=with_sh_weights(PRESET_STEPS[config.preset], direct, train),
+                               start=with_sh_weights(preset_steps(config), direct, train),
                                psnr_before=mirrored_psnr)  # fmt: skip
         if direct_fit is not None and (
             fit is None or archive_bytes(direct.stored, direct_fit.steps) < archive_bytes(state.stored, fit.steps)
         ):
             state, exact, fit, psnr, before_bytes = direct, mirrored, direct_fit, mirrored_psnr, mirrored_bytes
-            stages = [_undone(st, psnr) if st["stage"] in ("pruning", "sh_reduction") else st for st in stages]
+            stages = [_undone(st, psnr) if st.stage in ("pruning", "sh_reduction") else st for st in stages]
     report.timed("quantize", time.perf_counter() - t0)
     if fit is None:  # nothing lossy fits the budget that is left: store the attributes exactly
         state = exact
         archive = write_archive(state, meta)
         stages.append(_stage("quantization", before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0))
-        stages.append(_stage("entropy_coding", before_bytes, len(archive), psnr, psnr, 0.0, codec="lossless"))
-        return Coded(state, archive, write_archive(source_state, meta), "lossless", stages)
+        stages.append(_stage("entropy_coding", before_bytes, len(archive), psnr, psnr, 0.0))
+        return Coded(state, archive, write_archive(source_state, meta), _LOSSLESS, stages)
     codec = fit.steps.archive_codec(extent_of(state.stored), config.preset)
     fixed = _fixed_width_bytes(state, fit.steps)
-    stages.append(_stage("quantization", before_bytes, fixed, psnr, fit.psnr, time.perf_counter() - t0,
-                         factor=fit.factor, tries=fit.tries))  # fmt: skip
+    stages.append(_stage("quantization", before_bytes, fixed, psnr, fit.psnr, time.perf_counter() - t0))
     t0 = time.perf_counter()
     archive = write_archive(state, meta, codec)
-    stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0,
-                         codec=codec.name))  # fmt: skip
-    quantization = {"steps": fit.steps.as_dict(), "factor": fit.factor, "floor": floors["quantization"],
-                    "floors": floors, "shares": SHARES, "probe_errors": fit.probe_errors}  # fmt: skip
+    stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0))
+    report = CodecReport(config.preset, fit.steps.report(), floors["quantization"], len(fit.tries))
     plain_codec = replace(fit.steps, sh_weights=None).archive_codec(extent_of(source_state.stored), config.preset)
     baseline = write_archive(_canonical(source_state), meta, plain_codec)
-    return Coded(state, archive, baseline, codec.name, stages, quantization)
+    return Coded(state, archive, baseline, report, stages)

@@ -13,6 +13,7 @@ import torch
 
 from ..config import CompressConfig
 from ..mirror import Plane
+from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate
 from .gating import colour_mismatch, gated
@@ -27,28 +28,6 @@ MIN_SAVING = 0.02
 TUNE_GAIN = 3.0
 # Fine-tunes tried per level before the level is given up.
 MAX_ATTEMPTS = 2
-
-
-@dataclass
-class LevelRecord:
-    level: int
-    normal: list[float]
-    offset: float
-    votes: float
-    left: int
-    right: int
-    coverage: float
-    psnr_before: float
-    psnr_after: float
-    ssim: float
-    stored_after: int
-    seconds: float
-    accepted: bool
-    reason: str
-    gate: float | None = None  # colour-agreement gate of the membership tried (None: geometry alone)
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 def apply_mirror(
@@ -116,12 +95,12 @@ def try_level(
     extent: float,
     report,  # noqa: ANN001 - pipeline._Reporter
     psnr_before: float | None = None,
-) -> tuple[LevelState, LevelRecord]:
+) -> tuple[LevelState, LevelReport]:
     """Apply one membership of a mirror, fine-tune and judge it. Returns the candidate state and its record."""
     t0 = time.perf_counter()
     candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
     if psnr_before is None:
-        psnr_before, _ = evaluate(candidate.expanded(), views.test, views.background)
+        psnr_before = evaluate(candidate.expanded(), views.fit, views.background).worst
 
     def on_step(step: int, loss: float) -> None:
         if step % 10 == 0:
@@ -143,14 +122,15 @@ def try_level(
         should_stop=report.should_stop,
         on_step=on_step,
     )
-    psnr_after, ssim_after = evaluate(tuned.expanded(), views.test, views.background)
-    if psnr_after < psnr_before:  # the fine-tune must pay for itself too: exact twins need none
+    after = evaluate(tuned.expanded(), views.fit, views.background)
+    if after.worst < psnr_before:  # the fine-tune must pay for itself too: exact twins need none
         tuned = candidate.detach()
-        psnr_after, ssim_after = evaluate(tuned.expanded(), views.test, views.background)
+        after = evaluate(tuned.expanded(), views.fit, views.background)
+    psnr_after, ssim_after = after.worst, after.ssim
     accepted = psnr_after >= floor
-    record = LevelRecord(
+    record = LevelReport(
         level=level,
-        normal=[float(v) for v in tuned.normals[-1]],
+        normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]), float(tuned.normals[-1, 2])),
         offset=float(tuned.offsets[-1]),
         votes=membership.votes,
         left=int(membership.left.numel()),
@@ -180,14 +160,14 @@ def plan_attempts(
     scored = []
     for m in worth:
         candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
-        scored.append((m, evaluate(candidate.expanded(), views.test, views.background)[0]))
+        scored.append((m, evaluate(candidate.expanded(), views.fit, views.background).worst))
     hopeful = [(m, p) for m, p in scored if p >= floor - TUNE_GAIN]
     if not hopeful and scored:  # none close enough: the strictest still gets its chance
         hopeful = scored[-1:]
     return hopeful[:MAX_ATTEMPTS]
 
 
-def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelRecord], done: bool) -> None:
+def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "fingerprint": fingerprint,
@@ -195,7 +175,7 @@ def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: l
         "normals": state.normals.detach().cpu(),
         "offsets": state.offsets.detach().cpu(),
         "bits": state.bits.cpu(),
-        "records": [r.as_dict() for r in records],
+        "records": [asdict(r) for r in records],
         "done": done,
     }
     tmp = path.with_suffix(".tmp")
@@ -213,7 +193,8 @@ def _load_checkpoint(path: Path, fingerprint: str, device: torch.device):  # noq
     if payload.get("fingerprint") != fingerprint:
         return None
     state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
-    return state, [LevelRecord(**r) for r in payload["records"]], bool(payload["done"])
+    records = [LevelReport(**{**r, "normal": tuple(r["normal"])}) for r in payload["records"]]
+    return state, records, bool(payload["done"])
 
 
 def run_levels(
@@ -227,7 +208,7 @@ def run_levels(
     checkpoint: Path | None,
     fingerprint: str,
     size_of: Callable[[LevelState], int] | None = None,
-) -> tuple[LevelState, list[LevelRecord]]:
+) -> tuple[LevelState, list[LevelReport]]:
     """Accept mirror levels while they pay for themselves; resume from ``checkpoint`` when it matches.
 
     ``size_of`` measures a state's archive where fewer Gaussians need not mean fewer bytes (a lossless archive of
@@ -265,8 +246,7 @@ def run_levels(
             )
             report.timed("optimize", time.perf_counter() - t0)
             if record.accepted and size_of is not None and size_of(candidate) >= size_of(state):
-                record.accepted = False
-                record.reason = "within budget, but the archive would not shrink"
+                record = replace(record, accepted=False, reason="within budget, but the archive would not shrink")
             records.append(record)
             if record.accepted:
                 state, done = candidate, False

@@ -8,17 +8,18 @@ learning rates (positions scaled by the scene's extent).
 from __future__ import annotations
 
 import random
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
 from ..metrics import ssim
 from ..mirror import expand
 from ..progress import Cancelled, StopFn
 from ..render import render
 from ..scene import GaussianScene
+from ..views import View
 from .state import LevelState
 
 LAMBDA_DSSIM = 0.2
@@ -44,7 +45,7 @@ def loss_fn(image: Tensor, target: Tensor) -> Tensor:
 
 def optimize_level(
     state: LevelState,
-    views: list[tuple[Camera, Tensor]],
+    views: Sequence[View],
     background: Tensor,
     *,
     iterations: int,
@@ -81,7 +82,7 @@ def optimize_level(
         if not order:
             order = list(range(len(views)))
             rng.shuffle(order)
-        cam, target = views[order.pop()]
+        cam, target, _ = views[order.pop()]
         normals = torch.cat([frozen_n, train_n / train_n.norm(dim=-1, keepdim=True)])
         offsets = torch.cat([frozen_g, train_g])
         scene, _ = expand(GaussianScene(**params), normals, offsets, state.bits)

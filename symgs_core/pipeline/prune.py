@@ -16,6 +16,7 @@ boldest that stays above its floor, or nothing.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -24,7 +25,7 @@ from torch import Tensor
 from ..cameras import Camera
 from ..mirror import expand
 from ..render import render
-from ..views import evaluate
+from ..views import View, evaluate
 from .optimize import optimize_level
 from .state import LevelState
 
@@ -79,8 +80,8 @@ def truncate_sh(sh_rest: Tensor, degrees: Tensor) -> Tensor:
 
 def prune(
     state: LevelState,
-    train: list[tuple[Camera, Tensor]],
-    test: list[tuple[Camera, Tensor]],
+    train: Sequence[View],
+    test: Sequence[View],
     background: Tensor,
     *,
     floor: float,
@@ -94,7 +95,7 @@ def prune(
     as it is or, when it misses by less than 1 dB, after ``iterations`` Adam steps of fine-tuning (planes frozen),
     is returned; None if none does.
     """
-    weight = contributions(state, [cam for cam, _ in train])
+    weight = contributions(state, [view.camera for view in train])
     for t in thresholds:
         keep = weight >= t
         removed = int((~keep).sum())
@@ -102,10 +103,10 @@ def prune(
             continue
         pruned = LevelState(state.stored.select(keep.to(state.stored.device)), state.normals, state.offsets,
                             state.bits[keep.to(state.bits.device)])  # fmt: skip
-        value, _ = evaluate(pruned.expanded(), test, background)
+        value = evaluate(pruned.expanded(), test, background).worst
         if floor - 1.0 < value < floor and iterations:  # a short fine-tune may win back a small loss, not more
             pruned = optimize_level(pruned, train, background, iterations=iterations, extent=extent, train_planes=0)
-            value, _ = evaluate(pruned.expanded(), test, background)
+            value = evaluate(pruned.expanded(), test, background).worst
         if value >= floor:
             return StageResult(pruned, removed, value, t)
     return None
@@ -113,8 +114,8 @@ def prune(
 
 def reduce_sh(
     state: LevelState,
-    train: list[tuple[Camera, Tensor]],
-    test: list[tuple[Camera, Tensor]],
+    train: Sequence[View],
+    test: Sequence[View],
     background: Tensor,
     *,
     floor: float,
@@ -129,7 +130,7 @@ def reduce_sh(
     degree = stored.sh_degree
     if degree == 0:
         return None
-    weight = contributions(state, [cam for cam, _ in train]).to(stored.sh_rest.dtype)
+    weight = contributions(state, [view.camera for view in train]).to(stored.sh_rest.dtype)
     energy = band_energy(stored.sh_rest.detach()).cpu()  # [N, degree]
     # Cost of truncating to degree d: the energy of bands d+1..degree.
     tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])  # tail[:, l-1] = sum of bands l..degree
@@ -141,7 +142,7 @@ def reduce_sh(
             continue
         sh_rest = truncate_sh(stored.sh_rest.detach(), degrees)
         reduced = LevelState(stored.with_(sh_rest=sh_rest), state.normals, state.offsets, state.bits)
-        value, _ = evaluate(reduced.expanded(), test, background)
+        value = evaluate(reduced.expanded(), test, background).worst
         if value >= floor:
             return StageResult(reduced, removed, value, t)
     return None

@@ -16,7 +16,8 @@ from service.cli.stack import LocalStack
 
 KEY_A, KEY_B = "key-a-7f3e", "key-b-91c2"
 # A few seconds per job on the CPU.
-TINY = {"iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64, "max_levels": 1, "device": "cpu"}
+TINY = {"iterations": 20, "train_views": 4, "fit_views": 2, "eval_views": 2, "resolution": 64, "eval_resolution": 64,
+        "max_levels": 1, "device": "cpu"}
 LIMITS = {
     "SYMGS_MAX_UPLOAD_BYTES": str(6 << 20),
     "SYMGS_MAX_GAUSSIANS": "50000",

@@ -9,6 +9,7 @@ from pathlib import Path
 import httpx
 
 from service.cli.stack import SYMGS
+from symgs_core.config import DEFAULT_PRESET
 from tests.integration.conftest import KEY_A, TINY
 
 
@@ -38,7 +39,8 @@ def test_submit_follows_progress_and_downloads(stack, scene_path: Path, api_a: h
     assert run.returncode == 0, run.stdout + run.stderr
     job_id = run.stdout.split("job ", 1)[1].split()[0]
     job = api_a.get(f"/v1/jobs/{job_id}").json()
-    assert job["state"] == "succeeded" and job["params"] == {**{k: None for k in job["params"]}, **TINY}
+    assert job["state"] == "succeeded"
+    assert job["params"] == {**{k: None for k in job["params"]}, "preset": DEFAULT_PRESET, **TINY}
     assert (tmp_path / scene_path.stem / "result.symgs").read_bytes() == api_a.get(f"/v1/jobs/{job_id}/result").content
 
     queued = symgs(stack, "submit", str(scene_path), "--no-wait", "--params", json.dumps({**TINY, "iterations": 5000}))

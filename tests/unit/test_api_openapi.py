@@ -8,16 +8,15 @@ import sys
 import pytest
 
 from service.api.app import create_app
+from symgs_core.export.formats import EXPORTS
 from worker.settings import Settings
 
 ROUTES = {
     ("post", "/v1/jobs"), ("get", "/v1/jobs"), ("get", "/v1/jobs/{job_id}"), ("delete", "/v1/jobs/{job_id}"),
     ("post", "/v1/jobs/{job_id}:cancel"), ("get", "/v1/jobs/{job_id}/events"), ("get", "/v1/jobs/{job_id}/result"),
-    ("get", "/v1/jobs/{job_id}/result.ply"), ("get", "/v1/jobs/{job_id}/result.spz"),
-    ("get", "/v1/jobs/{job_id}/result.compressed.ply"),
-    ("get", "/v1/jobs/{job_id}/report"), ("get", "/v1/jobs/{job_id}/charts/{name}.png"), ("get", "/healthz"),
-    ("get", "/readyz"), ("get", "/metrics"),
-}  # fmt: skip
+    ("get", "/v1/jobs/{job_id}/report"), ("get", "/v1/jobs/{job_id}/charts/{name}.png"), ("get", "/v1/presets"),
+    ("get", "/healthz"), ("get", "/readyz"), ("get", "/metrics"),
+} | {("get", f"/v1/jobs/{{job_id}}/{fmt.artifact}") for fmt in EXPORTS}  # every row of the export table  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -16,14 +16,16 @@ from worker.settings import Settings
 def test_params_map_onto_the_pipeline_config() -> None:
     fields = {f.name for f in dataclasses.fields(CompressConfig)}
     assert set(JobParams.model_fields) - {"device"} <= fields
-    assert JobParams().pipeline_overrides() == {}  # the pipeline's own defaults
+    # Nothing given: the default preset, every other setting the preset's, as symgs_core.compress() would use.
+    assert CompressConfig.for_preset(**JobParams().pipeline_overrides()) == CompressConfig.for_preset()
     extremes = JobParams(preset="lossless", psnr_budget=60, max_levels=16, iterations=20_000, train_views=512,
-                         eval_views=256, resolution=2048, use_mirrors=False, seed=2**31 - 1, device="cuda")  # fmt: skip
+                         fit_views=256, eval_views=256, resolution=2048, eval_resolution=2048, use_mirrors=False,
+                         seed=2**31 - 1, device="cuda")  # fmt: skip
     assert set(extremes.pipeline_overrides()) == set(JobParams.model_fields) - {"device"}
+    lows = JobParams(psnr_budget=0, resolution=16, eval_resolution=16, train_views=1, fit_views=1, eval_views=1)
     for device in ("cpu", "cuda"):
-        CompressConfig(**extremes.pipeline_overrides(), device=device)
-        CompressConfig(**JobParams(psnr_budget=0, resolution=16, train_views=1, eval_views=1).pipeline_overrides(),
-                       device=device)  # fmt: skip
+        CompressConfig.for_preset(**extremes.pipeline_overrides(), device=device)
+        CompressConfig.for_preset(**lows.pipeline_overrides(), device=device)
 
 
 @pytest.mark.parametrize(
@@ -32,6 +34,7 @@ def test_params_map_onto_the_pipeline_config() -> None:
         ("{", "params"), ("[]", "params"), ('{"iterations": -1}', "iterations"), ('{"resolution": 8}', "resolution"),
         ('{"preset": "huge"}', "preset"), ('{"device": "tpu"}', "device"), ('{"detect": {}}', "detect"),
         ('{"max_levels": 17}', "max_levels"), ('{"psnr_budget": "a lot"}', "psnr_budget"),
+        ('{"psnr_budget": NaN}', "psnr_budget"),
     ],
 )
 def test_bad_params_are_named(text: str, where: str) -> None:

@@ -101,7 +101,7 @@ def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None
         sh_rest=torch.from_numpy(_clustered(n, k, centres=50, noise=0.01, seed=6)),
     )
     steps = QuantSteps(sh_palette=32).scaled(3.0)
-    assert steps.sh_palette == 32 and steps.as_dict()["sh_palette"] == 32
+    assert steps.sh_palette == 32 and steps.report().sh_palette == 32
     name = steps.archive_codec(extent_of(scene), "test-palette")
     contents = ArchiveContents(scene, [], torch.zeros(n, 0, dtype=torch.bool), {})
     data = encode_archive(contents, codec=name)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +34,12 @@ from symgs_core.pictures import (
 )
 from symgs_core.pictures.palette import LEVEL_COLOURS, level_colour
 from symgs_core.pictures.renders import image_psnr
-from symgs_core.pipeline.levels import LevelRecord
 from symgs_core.ply import save_scene
+from symgs_core.report import Fidelity, GaussianCounts, LevelReport, Report, StageReport
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import self_supervised_views
+
+from ._samples import sample_report
 
 LO, HI = np.full(3, -1.0), np.full(3, 1.0)
 
@@ -139,61 +142,63 @@ def test_scene_box_trims_floaters() -> None:
     assert np.all(lo >= -1) and np.all(hi <= 1) and np.all(hi - lo > 1.8)
 
 
-def record(level: int, stored_after: int, seconds: float, accepted: bool = True, **kw) -> LevelRecord:  # noqa: ANN003
-    values = dict(normal=[1.0, 0.0, 0.0], offset=0.0, votes=1.0, left=10, right=10, coverage=1.0,
+def record(level: int, stored_after: int, seconds: float, accepted: bool = True, **kw) -> LevelReport:  # noqa: ANN003
+    values = dict(normal=(1.0, 0.0, 0.0), offset=0.0, votes=1.0, left=10, right=10, coverage=1.0,
                   psnr_before=30.0, psnr_after=35.0, ssim=0.9, reason="")  # fmt: skip
     values.update(kw)
-    return LevelRecord(level=level, stored_after=stored_after, seconds=seconds, accepted=accepted, **values)
+    return LevelReport(level=level, stored_after=stored_after, seconds=seconds, accepted=accepted, **values)
 
 
 SECONDS = {"load": 1.0, "views": 2.0, "detect": 3.0, "optimize": 15.0, "encode": 0.5, "evaluate": 0.25}
-RECORDS = [record(0, 70, 4.0, psnr_before=math.inf), record(1, 50, 5.0), record(2, 40, 6.0, False, psnr_after=20.0)]
+RECORDS = (record(0, 70, 4.0, psnr_before=math.inf), record(1, 50, 5.0), record(2, 40, 6.0, False, psnr_after=20.0))
 
 
-def plain_report() -> dict:
+def plain_report(**changes) -> Report:  # noqa: ANN003
     """A report without stage accounting: the baseline is the plain archive of the input."""
-    return {"baseline_bytes": 1000, "output_bytes": 600, "gaussians": {"input": 100, "stored": 50, "decoded": 100},
-            "psnr_input": None, "psnr": 34.5, "psnr_floor": 30.0, "seconds": SECONDS,
-            "psnr_reference": "renders of the input"}  # fmt: skip
+    base = replace(sample_report(), baseline_bytes=1000, output_bytes=600, gaussians=GaussianCounts(100, 50, 100),
+                   psnr_input=math.inf, fitting=Fidelity(34.5, 36.0, 0.9), fidelity=Fidelity(34.0, 33.5, 0.9),
+                   psnr_floor=30.0, seconds=SECONDS, levels=RECORDS, stages=())  # fmt: skip
+    return replace(base, **changes)
 
 
 def test_points_follow_the_levels_with_sizes_on_the_measured_line() -> None:
-    points = job_points(RECORDS, plain_report())
+    points = job_points(plain_report())
     assert [p.kind for p in points] == ["input", "applied", "level", "applied", "level", "applied", "rolled_back",
-                                        "final"]  # fmt: skip
+                                        "final", "evaluated"]  # fmt: skip
     assert points[0].label == "baseline (plain codec)" and points[0].bytes == 1000 and points[0].psnr is None
     # Levels: on the line through (100 Gaussians, 1000 B) and (50, 600 B); exact at the final count.
     assert [(p.bytes, p.estimated) for p in points if p.kind in ("level", "rolled_back")] == [
         (pytest.approx(760.0), True), (600.0, False), (pytest.approx(520.0), True)]  # fmt: skip
-    assert [p.psnr for p in points[1:]] == [None, 35.0, 30.0, 35.0, 30.0, 20.0, 34.5]
+    assert [p.psnr for p in points[1:]] == [None, 35.0, 30.0, 35.0, 30.0, 20.0, 34.5, 33.5]
     # Each level gets a third of the detection time before its own seconds; encode and evaluate close the job.
-    assert [p.seconds for p in points] == pytest.approx([3, 4, 8, 9, 14, 15, 21, 21.75])
-    assert points[-1].bytes == 600
+    assert [p.seconds for p in points] == pytest.approx([3, 4, 8, 9, 14, 15, 21, 21.75, 21.75])
+    assert points[-1].bytes == points[-2].bytes == 600
 
 
 def test_points_use_the_stage_accounting_when_the_report_has_it() -> None:
-    report = plain_report() | {"baseline_bytes": 400, "output_bytes": 300, "psnr": 37.9}
-    report["gaussians"] = {"input": 100, "stored": 45, "decoded": 90}
-    report["stages"] = [
-        {"stage": "mirrors", "bytes_before": 2000, "bytes_after": 1200, "psnr_after": 35.0, "seconds": 0.5},
-        {"stage": "pruning", "bytes_before": 1200, "bytes_after": 1000, "psnr_after": 34.0, "seconds": 1.0},
-        {"stage": "quantization", "bytes_before": 1000, "bytes_after": 500, "psnr_after": 38.0, "seconds": 2.0},
-        {"stage": "entropy_coding", "bytes_before": 500, "bytes_after": 300, "psnr_after": 38.0, "seconds": 0.5},
-    ]
-    points = job_points(RECORDS, report)
+    stage = lambda name, before, after, psnr, seconds: StageReport(  # noqa: E731
+        name, before, after, before - after, psnr, None, seconds)
+    report = plain_report(
+        baseline_bytes=400, output_bytes=300, fitting=Fidelity(37.9, 39.0, 0.9), gaussians=GaussianCounts(100, 45, 90),
+        stages=(stage("mirrors", 2000, 1200, 35.0, 0.5), stage("pruning", 1200, 1000, 34.0, 1.0),
+                stage("quantization", 1000, 500, 38.0, 2.0), stage("entropy_coding", 500, 300, 38.0, 0.5)),
+    )  # fmt: skip
+    points = job_points(report)
     assert points[0].label == "input (lossless archive)" and points[0].bytes == 2000
     levels = [p for p in points if p.kind in ("level", "rolled_back")]
     assert [p.bytes for p in levels] == pytest.approx([2000 - 800 * 30 / 50, 1200, 2000 - 800 * 60 / 50])
     stages = [p for p in points if p.kind == "stage"]
     assert [(p.label, p.bytes, p.psnr) for p in stages] == [("pruning", 1000, 34.0), ("quantization", 500, 38.0)]
     assert [p.seconds for p in stages] == pytest.approx([21 + 0.5 + 1, 21 + 0.5 + 1 + 2])
-    assert (points[-1].bytes, points[-1].psnr, points[-1].seconds) == (300, 37.9, pytest.approx(25.25))
+    final = points[-2]
+    assert (final.bytes, final.psnr, final.seconds) == (300, 37.9, pytest.approx(25.25))
 
 
 def test_charts_are_pngs_of_the_requested_size() -> None:
     for draw in (rate_distortion_png, speed_accuracy_png):
-        assert png(draw(RECORDS, plain_report(), width=500, height=300)).size == (500, 300)
-        assert png(draw([], plain_report() | {"psnr": None})).size == (820, 420)  # no level, lossless
+        assert png(draw(plain_report(), width=500, height=300)).size == (500, 300)
+        lossless = plain_report(levels=(), fitting=Fidelity(math.inf, math.inf, 1.0))
+        assert png(draw(lossless)).size == (820, 420)  # no level, lossless
 
 
 def test_difference_and_compare_picture() -> None:
@@ -229,11 +234,13 @@ def test_mirror_planes_are_outlined_in_their_level_colours() -> None:
 
 def test_job_pictures_of_a_symmetric_scene() -> None:
     made = synthetic_scene("global", n=300, seed=2)
-    views = self_supervised_views(made.scene, 3, 2, 32, torch.zeros(3))
+    views = self_supervised_views(made.scene, train=3, fit=1, eval=2, resolution=32, eval_resolution=32,
+                                  background=torch.zeros(3))  # fmt: skip
     plane = made.planes[0]
-    records = [record(0, 150, 1.0, normal=[2 * v for v in plane.normal], offset=2 * plane.offset)]  # unnormalised
-    report = plain_report() | {"gaussians": {"input": 300, "stored": 150, "decoded": 300}}
-    pictures = job_pictures(made.scene, made.scene, views, records, report, size=48)
+    normal = tuple(2 * v for v in plane.normal)  # unnormalised
+    report = plain_report(gaussians=GaussianCounts(300, 150, 300),
+                          levels=(record(0, 150, 1.0, normal=normal, offset=2 * plane.offset),))  # fmt: skip
+    pictures = job_pictures(made.scene, made.scene, views, report, size=48)
     assert set(pictures) == {"compare_0", "compare_1", "mirrors", "rate_distortion", "speed_accuracy"}
     assert png(pictures["compare_0"]).size == (3 * 48 + 150, 48 + 90)
     assert outline_pixels(png(pictures["mirrors"]), level_colour(0)) > 20
@@ -243,7 +250,8 @@ def test_compress_command_writes_the_pictures(tmp_path: Path) -> None:
     scene = tmp_path / "scene.ply"
     save_scene(synthetic_scene("global", n=300, seed=1).scene, scene)
     out = tmp_path / "pictures"
-    tiny = ["--iterations", "2", "--train-views", "2", "--eval-views", "1", "--resolution", "24", "--max-levels", "1"]
+    tiny = ["--iterations", "2", "--train-views", "2", "--fit-views", "1", "--eval-views", "1", "--resolution", "24",
+            "--eval-resolution", "24", "--max-levels", "1"]
     argv = ["compress", str(scene), "-o", str(tmp_path / "scene.symgs"), "--pictures", str(out), "--quiet", *tiny]
     assert main(argv) == 0
     assert {p.name for p in out.iterdir()} == {"compare_0.png", "mirrors.png", "rate_distortion.png",

@@ -35,10 +35,11 @@ def test_gaussians_nobody_sees_contribute_nothing_and_are_pruned(scene: Gaussian
     far = scene.select(torch.arange(40)).map(lambda t: t.clone())
     far.means += 1000.0  # far outside every camera's frustum
     both = GaussianScene.cat([scene, far])
-    views = self_supervised_views(scene, 4, 2, 48, torch.zeros(3))
-    weights = contributions(LevelState.plain(both), [cam for cam, _ in views.train])
+    views = self_supervised_views(scene, train=4, fit=2, eval=1, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    weights = contributions(LevelState.plain(both), [v.camera for v in views.train])
     assert (weights[len(scene) :] == 0).all()
-    result = prune(LevelState.plain(both), views.train, views.test, views.background, floor=60.0, extent=1.0,
+    result = prune(LevelState.plain(both), views.train, views.fit, views.background, floor=60.0, extent=1.0,
                    thresholds=(1e-9,))  # fmt: skip
     assert result is not None and result.removed >= 40
     assert len(result.state.stored) == len(both) - result.removed
@@ -46,8 +47,9 @@ def test_gaussians_nobody_sees_contribute_nothing_and_are_pruned(scene: Gaussian
 
 
 def test_pruning_gives_up_rather_than_go_below_its_floor(scene: GaussianScene) -> None:
-    views = self_supervised_views(scene, 4, 2, 48, torch.zeros(3))
-    result = prune(LevelState.plain(scene), views.train, views.test, views.background, floor=200.0, extent=1.0,
+    views = self_supervised_views(scene, train=4, fit=2, eval=1, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    result = prune(LevelState.plain(scene), views.train, views.fit, views.background, floor=200.0, extent=1.0,
                    thresholds=(1e6,))  # fmt: skip
     assert result is None
 
@@ -80,13 +82,14 @@ def test_sh_reduction_drops_bands_without_view_dependence(scene: GaussianScene) 
     rest = scene.sh_rest.clone()
     rest[::2] *= 1e-4  # half the Gaussians barely change colour with direction
     tweaked = scene.with_(sh_rest=rest)
-    views = self_supervised_views(tweaked, 4, 2, 48, torch.zeros(3))
-    result = reduce_sh(LevelState.plain(tweaked), views.train, views.test, views.background, floor=45.0,
+    views = self_supervised_views(tweaked, train=4, fit=2, eval=1, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    result = reduce_sh(LevelState.plain(tweaked), views.train, views.fit, views.background, floor=45.0,
                        thresholds=(1e-6,))  # fmt: skip
     assert result is not None and result.removed >= 0.4 * len(scene) * 2
     kept = result.state.stored.sh_rest
     dropped = (kept == 0).all(dim=(1, 2))
     assert dropped[::2].float().mean() > 0.9  # the flat ones lose every band
     assert dropped[1::2].float().mean() < dropped[::2].float().mean()
-    assert evaluate(result.state.expanded(), views.test, views.background)[0] == pytest.approx(result.psnr)
+    assert evaluate(result.state.expanded(), views.fit, views.background).worst == pytest.approx(result.psnr)
     assert result.psnr >= 45.0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -31,22 +32,24 @@ def test_stage_floors_are_cumulative_shares_of_the_excess_mse() -> None:
 @pytest.fixture(scope="module")
 def setting():
     scene = synthetic_scene("global", n=700, seed=2, sh_degree=1).scene
-    return LevelState.plain(scene), self_supervised_views(scene, 2, 3, 48, torch.zeros(3))
+    views = self_supervised_views(scene, train=2, fit=3, eval=1, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    return LevelState.plain(scene), views
 
 
 def test_step_search_spends_the_budget_without_going_under_the_floor(setting) -> None:  # noqa: ANN001
     state, views = setting
-    fit = fit_quantization(state, views.test, views.background, floor=42.0, start=QuantSteps(), psnr_before=math.inf)
+    fit = fit_quantization(state, views.fit, views.background, floor=42.0, start=QuantSteps(), psnr_before=math.inf)
     assert fit is not None and fit.psnr >= 42.0
     decoded = LevelState(quantized(state.stored, fit.steps), state.normals, state.offsets, state.bits)
-    assert evaluate(decoded.expanded(), views.test, views.background)[0] == pytest.approx(fit.psnr)
+    assert evaluate(decoded.expanded(), views.fit, views.background).worst == pytest.approx(fit.psnr)
     assert fit.psnr < 52.0  # it coarsened the steps towards the floor instead of stopping at the first pass
     assert all(t["psnr"] >= 42.0 for t in fit.tries if t["factor"] == fit.factor)
 
 
 def test_no_quantisation_fits_an_infinite_floor(setting) -> None:  # noqa: ANN001
     state, views = setting
-    assert fit_quantization(state, views.test, views.background, floor=math.inf, start=QuantSteps(),
+    assert fit_quantization(state, views.fit, views.background, floor=math.inf, start=QuantSteps(),
                             psnr_before=math.inf) is None  # fmt: skip
 
 
@@ -55,17 +58,17 @@ def test_a_lossy_preset_reports_every_stage_and_keeps_the_floor() -> None:
     from symgs_core.pipeline import compress, decompress
 
     scene = synthetic_scene("global", n=900, seed=6, sh_degree=1).scene
-    config = CompressConfig(preset="balanced", psnr_budget=0.3, iterations=2, train_views=3, eval_views=2,
-                            resolution=48, max_levels=1, pictures=False)  # fmt: skip
+    config = CompressConfig.for_preset("balanced", iterations=2, train_views=3, fit_views=2, eval_views=2,
+                                       resolution=48, eval_resolution=48, max_levels=1, pictures=False)  # fmt: skip
     result = compress(scene, config=config)
     report = result.report
-    stages = report["stages"]
-    assert [s["stage"] for s in stages] == ["mirrors", "pruning", "sh_reduction", "quantization", "entropy_coding"]
+    stages = report.stages
+    assert [s.stage for s in stages] == ["mirrors", "pruning", "sh_reduction", "quantization", "entropy_coding"]
     for before, after in zip(stages, stages[1:]):
-        assert after["bytes_before"] == before["bytes_after"]
-    assert stages[-1]["bytes_after"] == len(result.archive) == report["output_bytes"]
-    assert report["psnr"] >= report["psnr_floor"] == pytest.approx(config.self_supervised_floor())
-    assert stages[-1]["psnr_after"] == pytest.approx(report["psnr"])
-    lossless = compress(scene, config=CompressConfig(**{**config.__dict__, "preset": "lossless"})).report
-    assert report["output_bytes"] * 4 < lossless["output_bytes"]
-    assert len(decompress(result.archive)) == report["gaussians"]["decoded"]
+        assert after.bytes_before == before.bytes_after
+    assert stages[-1].bytes_after == len(result.archive) == report.output_bytes
+    assert report.fitting.worst >= report.psnr_floor == pytest.approx(config.self_supervised_floor())
+    assert stages[-1].psnr_after == pytest.approx(report.fitting.worst)
+    lossless = compress(scene, config=replace(config, preset="lossless", psnr_budget=0.0)).report
+    assert report.output_bytes * 4 < lossless.output_bytes
+    assert len(decompress(result.archive)) == report.gaussians.decoded

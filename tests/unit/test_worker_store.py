@@ -19,6 +19,8 @@ from worker.settings import Settings
 from worker.storage import DirectoryStorage
 from worker.store import JobRecord, JobStore, owner_of
 
+from ._samples import sample_report
+
 
 @pytest.fixture(scope="module")
 def redis_url() -> Iterator[str]:
@@ -179,12 +181,10 @@ def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: P
 
 
 def test_headline_of_a_report() -> None:
-    level = {"level": 0, "normal": [1.0, 0.0, 0.0], "offset": 0.5, "left": 10, "right": 9, "psnr_after": 40.0,
-             "votes": 3.0, "coverage": 0.9, "psnr_before": 41.0, "ssim": 0.99, "seconds": 1.0}  # fmt: skip
-    report = {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0, "ratio_to_baseline": 1.5, "psnr": None,
-              "ssim": 1.0, "seconds": {"load": 0.25, "levels": 2.0}, "levels": [
-                  {**level, "accepted": True}, {**level, "level": 1, "accepted": False}]}  # fmt: skip
-    mirrors, metrics = headline(report)
-    assert mirrors == [{k: level[k] for k in ("level", "normal", "offset", "left", "right", "psnr_after")}]
-    assert metrics == {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0, "ratio_to_baseline": 1.5,
-                       "psnr": None, "ssim": 1.0, "seconds": 2.25}  # fmt: skip
+    mirrors, metrics = headline(sample_report())
+    assert [m.model_dump() for m in mirrors] == [
+        {"level": 0, "normal": [1.0, 0.0, 0.0], "offset": 0.5, "left": 10, "right": 9, "psnr_after": 40.0}
+    ]
+    assert metrics.model_dump() == {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0,
+                                    "ratio_to_baseline": 1.5, "psnr": None, "psnr_object": 44.0, "ssim": 1.0,
+                                    "seconds": 2.25}  # fmt: skip

@@ -130,10 +130,10 @@ function showJob(job) {
   fact(facts, "Job", job.id);
   fact(facts, "Scene", `${formatBytes(job.scene.bytes)}, ${job.scene.gaussians} Gaussians, SH degree ${job.scene.sh_degree}`);
   fact(facts, "Images", job.images ? `${job.images.images} (${job.images.layout})` : "none: judged against renders of the input");
-  // Parameters left out take the pipeline's defaults (which may depend on the preset).
+  // Parameters left out take the preset's values.
   const set = Object.entries(p).filter(([name, value]) => value != null && name !== "device");
   const settings = set.map(([name, value]) => `${name.replaceAll("_", " ")} ${value}`).join(", ");
-  fact(facts, "Settings", `${settings || "the server's defaults"}; device ${p.device}`);
+  fact(facts, "Settings", `${settings}; device ${p.device}`);
   fact(facts, "Queue", job.queue);
   fact(facts, "Created", formatTime(job.created_at));
   if (job.started_at) fact(facts, "Started", formatTime(job.started_at));
@@ -153,8 +153,12 @@ function showMetrics(job, report) {
   row(t, "Baseline archive (plain codec)", formatBytes(report.baseline_bytes));
   row(t, "Ratio to PLY", formatRatio(report.ratio_to_ply));
   row(t, "Ratio to baseline", formatRatio(report.ratio_to_baseline));
-  row(t, `PSNR against ${report.psnr_reference}`, formatPsnr(report.psnr));
-  row(t, "SSIM", report.ssim == null ? "\u2013" : report.ssim.toFixed(4));
+  const evaluation = report.cameras.evaluation;
+  const against = `${evaluation.count} evaluation cameras, against ${evaluation.source}`;
+  row(t, `PSNR, full frame (${against})`, formatPsnr(report.fidelity.psnr));
+  row(t, "PSNR, the object's own pixels", formatPsnr(report.fidelity.psnr_object));
+  row(t, "SSIM", report.fidelity.ssim.toFixed(4));
+  row(t, "PSNR floor (the preset's promise)", formatPsnr(report.psnr_floor));
   const g = report.gaussians;
   row(t, "Gaussians: input / stored / decoded", `${g.input} / ${g.stored} / ${g.decoded}`);
   row(t, "Device", report.device);

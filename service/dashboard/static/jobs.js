@@ -18,7 +18,9 @@ const LIMIT = 20;
 // Browsers open about six connections per server over HTTP/1.1; leave some for the page's other requests.
 const MAX_STREAMS = 4;
 const REFRESH_MS = 10000;
-const NUMERIC_PARAMS = ["psnr_budget", "max_levels", "iterations", "resolution", "train_views", "eval_views"];
+const NUMERIC_PARAMS = [
+  "psnr_budget", "max_levels", "iterations", "resolution", "eval_resolution", "train_views", "fit_views", "eval_views",
+];
 
 const query = new URLSearchParams(location.search);
 const view = {
@@ -193,6 +195,7 @@ function fetchPage() {
     .then((page) => {
       listStatus.textContent = "";
       showPage(page);
+      if (!presetsShown) showPresets();
     })
     .catch((err) => {
       if (err instanceof AuthError) {
@@ -244,6 +247,29 @@ async function submit(event) {
   } finally {
     button.disabled = false;
   }
+}
+
+// The presets, their promises and the default come from the server: one list, decided in one place. They are
+// asked for once the server has accepted the page's key (the job list loaded).
+let presetsShown = false;
+async function loadPresets() {
+  presetsShown = true;
+  const select = document.getElementById("preset");
+  const hint = document.getElementById("preset-hint");
+  const presets = await api("/v1/presets");
+  select.replaceChildren(...presets.map((p) => el("option", { value: p.name, selected: p.default }, p.name)));
+  const describe = () => {
+    hint.textContent = presets.find((p) => p.name === select.value)?.summary ?? "";
+  };
+  select.addEventListener("change", describe);
+  describe();
+}
+
+function showPresets() {
+  loadPresets().catch((err) => {
+    presetsShown = false;
+    document.getElementById("preset-hint").textContent = `Could not load the presets: ${err.message}`;
+  });
 }
 
 function init() {
