@@ -47,7 +47,9 @@ def run_demo(output: Path, *, gaussians: int = 4000) -> int:
         stack.cleanup()
         raise CliError(str(exc)) from None
     try:
-        console.print(f"API at {stack.api_url} (OpenAPI docs at {stack.api_url}/docs), Redis at {stack.redis_url}")
+        server = "SYMGS_REDIS_URL" if external else Path(stack.redis_binary).name
+        console.print(f"API at {stack.api_url} (OpenAPI docs at {stack.api_url}/docs), key {stack.api_key}")
+        console.print(f"Redis at {stack.redis_url} ({server})")
         with tempfile.TemporaryDirectory() as tmp:
             scene = Path(tmp) / "symmetric.ply"
             console.print(f"scene: {make_scene(scene, gaussians)}, {os.path.getsize(scene):,} bytes")

@@ -178,7 +178,7 @@ class LocalStack:
         return child
 
     def start_redis(self, timeout: float = 20) -> None:
-        binary = self.redis_binary or redis_server()
+        binary = self.redis_binary = self.redis_binary or redis_server()
         port = free_port()
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)

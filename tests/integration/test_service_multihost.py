@@ -17,7 +17,7 @@ from service.cli.stack import Child, LocalStack
 from tests.integration.conftest import KEY_A, TINY, client_for, finished, submit, wait_for
 from tests.integration.netns import NetworkUnavailable, private_network
 from tests.s3_server import BUCKET, start_s3_server
-from worker.store import P, JobStore, owner_of
+from worker.store import JobStore, P, owner_of
 
 PREFIX = "multihost"
 
