@@ -28,12 +28,13 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
 
 
-async def _latency(url: str, scene: bytes, clients: int, requests: int) -> dict:
+async def _latency(url: str, key: str | None, scene: bytes, clients: int, requests: int) -> dict:
     post_ms: list[float] = []
     get_ms: list[float] = []
     ids: list[str] = []
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-    async with httpx.AsyncClient(base_url=url, limits=limits, timeout=120) as client:
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    async with httpx.AsyncClient(base_url=url, headers=headers, limits=limits, timeout=120) as client:
 
         async def one_client(posting: bool) -> None:
             for _ in range(requests):
@@ -69,7 +70,7 @@ def _throughput(scene: Path, workers: int, jobs: int) -> dict:
     with LocalStack() as stack:
         for _ in range(workers - 1):
             stack.start_worker("cpu")
-        with SymgsClient(stack.api_url) as client:
+        with SymgsClient(stack.api_url, stack.api_key) as client:
             # Warm-up: the first job in each worker pays for importing torch.
             warm = [client.submit(scene, params=TINY).id for _ in range(workers)]
             for job_id in warm:
@@ -85,7 +86,7 @@ def _throughput(scene: Path, workers: int, jobs: int) -> dict:
 def _start_delay(scene: Path, samples: int) -> dict:
     """Submission (created_at) to the worker starting the job (started_at), one job at a time on an idle worker."""
     delays = []
-    with LocalStack() as stack, SymgsClient(stack.api_url) as client:
+    with LocalStack() as stack, SymgsClient(stack.api_url, stack.api_key) as client:
         client.wait(client.submit(scene, params=TINY).id)  # warm-up
         for _ in range(samples):
             job = client.wait(client.submit(scene, params={**TINY, "iterations": 0}).id)
@@ -113,7 +114,8 @@ def main() -> int:
         try:
             stack.start_redis()
             stack.start_api()
-            latency = asyncio.run(_latency(stack.api_url, scene.read_bytes(), args.clients, args.requests))
+            posted = _latency(stack.api_url, stack.api_key, scene.read_bytes(), args.clients, args.requests)
+            latency = asyncio.run(posted)
         finally:
             stack.cleanup()
         print(f"API latency, {latency['clients']} concurrent clients, {latency['scene_bytes']:,}-byte scene uploads:")

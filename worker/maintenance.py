@@ -87,7 +87,9 @@ def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report
 def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepReport) -> None:
     """Delete jobs (records and files) that finished more than ``job_ttl`` seconds ago, and stale uploads."""
     for job_id in store.finished_before(time.time() - settings.job_ttl):
-        storage.delete(job_id)
+        record = store.get(job_id)
+        if record is not None:
+            storage.delete(owner=record.owner, job_id=job_id)
         store.delete(job_id)
         report.expired.append(job_id)
     storage.sweep_staging(STAGING_MAX_AGE_S)

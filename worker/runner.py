@@ -12,6 +12,7 @@ import json
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -65,13 +66,16 @@ class _Heartbeat(threading.Thread):
 
 @dataclass
 class _Progress:
-    """The pipeline's progress callback: writes the job store and its event stream, thinned within a stage."""
+    """The pipeline's progress callback: writes the job store and its event stream, thinned within a stage, and
+    saves checkpoints the pipeline wrote since the last event (``save_checkpoints``)."""
 
     store: JobStore
     job_id: str
+    save_checkpoints: Callable[[], None]
     _last: tuple[str, int | None, float] = ("", None, 0.0)
 
     def __call__(self, event) -> None:  # noqa: ANN001 - symgs_core.progress.ProgressEvent
+        self.save_checkpoints()
         now = time.monotonic()
         stage, level, at = self._last
         if (event.stage, event.level) == (stage, level) and now - at < _PROGRESS_EVERY_S and event.fraction < 1:
@@ -116,18 +120,21 @@ def headline(report: Report) -> tuple[list[MirrorSummary], JobMetrics]:
     return mirrors, metrics
 
 
-def _write_results(storage: Storage, job_id: str, result: CompressResult) -> None:
+def _write_results(storage: Storage, record: JobRecord, result: CompressResult) -> None:
     from symgs_core.export.formats import EXPORTS
     from symgs_core.pipeline import decompress
 
-    storage.write_artifact(job_id, "result.symgs", result.archive)
-    storage.write_artifact(job_id, "report.json", json.dumps(result.report.as_json(), indent=1).encode())
+    def write(name: str, data: bytes) -> None:
+        storage.write_artifact(owner=record.owner, job_id=record.id, name=name, data=data)
+
+    write("result.symgs", result.archive)
+    write("report.json", json.dumps(result.report.as_json(), indent=1).encode())
     for name, png in result.images.items():
-        storage.write_artifact(job_id, f"charts/{name}.png", png)
+        write(f"charts/{name}.png", png)
     # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
     decoded = decompress(result.archive)
     for fmt in EXPORTS:
-        storage.write_artifact(job_id, fmt.artifact, fmt.write(decoded))
+        write(fmt.artifact, fmt.write(decoded))
 
 
 def run_job(
@@ -173,32 +180,34 @@ def _run_leased(
     if running is None:
         return "skipped"  # cancelled between the checks
 
-    folder = storage.job_dir(job_id)
     try:
         config = CompressConfig.for_preset(**record.params.pipeline_overrides(), device=device)
     except ValueError as exc:  # a combination the schema's per-field bounds let through
         raise JobInputError("bad_params", f"params: {exc}") from None
-    images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
     stop = _StopCheck(store, job_id, heartbeat)
-    try:
-        result = compress(
-            folder / "upload" / "scene.ply",
-            images=images,
-            config=config,
-            progress=_Progress(store, job_id),
-            checkpoint_dir=folder / "checkpoints",
-            should_stop=stop,
-        )
-    except Cancelled:
-        if heartbeat.lost.is_set():
-            return "lost"
-        store.transition(job_id, "cancelled", message="cancelled by the client")
-        return "cancelled"
+    with storage.workspace(owner=record.owner, job_id=job_id) as work:
+        folder = work.folder
+        images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
+        try:
+            result = compress(
+                folder / "upload" / "scene.ply",
+                images=images,
+                config=config,
+                progress=_Progress(store, job_id, work.save_checkpoints),
+                checkpoint_dir=folder / "checkpoints",
+                should_stop=stop,
+            )
+        except Cancelled:
+            if heartbeat.lost.is_set():
+                return "lost"
+            store.transition(job_id, "cancelled", message="cancelled by the client")
+            return "cancelled"
+        work.save_checkpoints()
     if heartbeat.lost.is_set():
         return "lost"  # the worker that took the job over writes the same files
-    _write_results(storage, job_id, result)
+    _write_results(storage, record, result)
     mirrors, metrics = headline(result.report)
-    artifacts = storage.artifact_names(job_id)
+    artifacts = storage.artifact_names(owner=record.owner, job_id=job_id)
     done = store.transition(
         job_id, "succeeded", stage="done", progress=1.0, message="", artifacts=artifacts,
         mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump(),
@@ -211,7 +220,7 @@ def _run_leased(
 def _delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None:
     record = store.get(job_id)
     if record is not None and record.delete_requested and record.finished:
-        storage.delete(job_id)
+        storage.delete(owner=record.owner, job_id=job_id)
         store.delete(job_id)
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import tempfile
 from functools import lru_cache
+from pathlib import Path
+from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -18,8 +21,10 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SYMGS_", extra="ignore")
 
     redis_url: str = "redis://localhost:6379/0"
-    storage: str = "./symgs-data"  # a directory shared by API and workers
-    api_keys: str = ""  # comma-separated Bearer tokens; authentication is off when empty
+    storage: str = "./symgs-data"  # a directory shared by API and workers, or s3://bucket/prefix
+    cache_dir: str = ""  # local scratch with s3:// storage (uploads on their way, jobs' inputs); "" = temp dir
+    api_keys: str = ""  # comma-separated Bearer tokens; `symgs serve` refuses to start without any...
+    auth: Literal["keys", "none"] = "keys"  # ...unless told to run open with "none"
 
     # Upload limits: sizes in bytes, counts in items.
     max_upload_bytes: int = Field(2 << 30, gt=0)
@@ -39,10 +44,21 @@ class Settings(BaseSettings):
 
     @field_validator("storage")
     @classmethod
-    def _local_storage(cls, value: str) -> str:
+    def _storage(cls, value: str) -> str:
         if "://" in value:
-            raise ValueError(f"SYMGS_STORAGE must be a directory path (object stores are not supported), got {value!r}")
+            from .storage_s3 import parse_url
+
+            try:
+                parse_url(value)
+            except ValueError as exc:
+                raise ValueError(f"SYMGS_STORAGE must be a directory path or s3://bucket/prefix: {exc}") from None
         return value
+
+    @model_validator(mode="after")
+    def _auth(self) -> Settings:
+        if self.auth == "none" and self.keys:
+            raise ValueError("SYMGS_AUTH=none turns authentication off, but SYMGS_API_KEYS is set: unset one of them")
+        return self
 
     @field_validator("hard_time_limit")
     @classmethod
@@ -55,6 +71,10 @@ class Settings(BaseSettings):
     @property
     def keys(self) -> list[str]:
         return [k.strip() for k in self.api_keys.split(",") if k.strip()]
+
+    @property
+    def cache_path(self) -> Path:
+        return Path(self.cache_dir) if self.cache_dir else Path(tempfile.gettempdir()) / "symgs-cache"
 
     @property
     def visibility_timeout(self) -> int:

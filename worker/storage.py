@@ -1,14 +1,17 @@
-"""Files of jobs, shared by the API and the workers: uploads, checkpoints and results.
+"""Files of jobs: uploads, checkpoints and results, behind one interface with two backends.
 
-Layout under the root (a directory both sides mount)::
+``DirectoryStorage`` keeps them in a folder that the API and every worker mount; ``S3Storage``
+(``storage_s3.py``) in an S3-compatible bucket, so that API and workers share no disk. Both use one layout, under
+the folder or the bucket's prefix::
 
-    staging/<token>/            an upload being received and checked, before it becomes a job
-    jobs/<id>/upload/           scene.ply and images/ (the extracted dataset), as accepted
-    jobs/<id>/checkpoints/      per-level checkpoints of the pipeline; a rerun resumes from them
-    jobs/<id>/result/           result.symgs, report.json, charts/<name>.png, and result<extension> for each
-                                export format (``symgs_core.export.formats``)
+    tenants/<owner>/jobs/<id>/upload/        scene.ply and images/ (the extracted dataset), as accepted
+    tenants/<owner>/jobs/<id>/checkpoints/   per-level checkpoints of the pipeline; a rerun resumes from them
+    tenants/<owner>/jobs/<id>/result/        result.symgs, report.json, charts/<name>.png, and result<extension>
+                                             for each export format (``symgs_core.export.formats``)
 
-Results are written under fixed names, atomically (write then rename), so a rerun overwrites and a reader never
+``<owner>`` is the digest of the API key that created the job (``anonymous`` without keys). An upload is received
+into a local staging folder (under the directory, or the process's cache for S3) and becomes the job's ``upload/``
+once checked. Results are written under fixed names, whole or not at all, so a rerun overwrites and a reader never
 sees half a file.
 """
 
@@ -20,6 +23,9 @@ import shutil
 import time
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from pathlib import Path
 
 from symgs_core.export.formats import EXPORTS
@@ -29,6 +35,12 @@ from .settings import Settings
 _EXPORTED = "|".join(re.escape(fmt.artifact) for fmt in EXPORTS)
 _ARTIFACT = re.compile(rf"^(result\.symgs|{_EXPORTED}|report\.json|charts/[A-Za-z0-9_-]{{1,64}}\.png)$")
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+_OWNER = re.compile(r"^[0-9a-z_-]{1,64}$")
+CHUNK_BYTES = 1 << 20  # read size when a result is streamed to a client
+
+
+class StorageError(OSError):
+    """The storage backend failed or is unreachable (the API answers 503)."""
 
 
 def check_job_id(job_id: str) -> str:
@@ -37,107 +49,167 @@ def check_job_id(job_id: str) -> str:
     return job_id
 
 
+def check_owner(owner: str) -> str:
+    if not _OWNER.match(owner):
+        raise ValueError(f"owner ids are 1 to 64 of [0-9a-z_-], got {owner!r}")
+    return owner
+
+
 def check_artifact(name: str) -> str:
     if not _ARTIFACT.match(name):
         raise ValueError(f"unknown artifact name {name!r}")
     return name
 
 
+def is_artifact(name: str) -> bool:
+    return _ARTIFACT.match(name) is not None
+
+
+def job_key(owner: str, job_id: str) -> str:
+    """The job's folder relative to the storage root: ``tenants/<owner>/jobs/<id>``."""
+    return f"tenants/{check_owner(owner)}/jobs/{check_job_id(job_id)}"
+
+
+@dataclass
+class Artifact:
+    """A result file opened for reading: its size, and its bytes in chunks (the source is closed at the end)."""
+
+    size: int
+    chunks: Iterator[bytes]
+
+
+class Workspace(AbstractContextManager):
+    """A job's local folder for the worker to compute in: ``folder/upload`` holds the inputs and
+    ``folder/checkpoints`` the pipeline's checkpoints; ``save_checkpoints`` makes new ones durable."""
+
+    folder: Path
+
+    def save_checkpoints(self) -> None:
+        """Store checkpoints written since the last call where another worker would find them; cheap when
+        nothing changed, so it may be called on every progress event."""
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
 class Storage(ABC):
-    """What the service needs from artifact storage. A backend on an object store would keep the same names and
-    stage files locally for the worker (``job_dir``) and for the API (``artifact_path``)."""
+    """What the API and the workers need from artifact storage. Job methods take the owner and the job id."""
 
     @abstractmethod
     def new_staging(self) -> Path:
         """An empty local folder to receive one upload into."""
 
     @abstractmethod
-    def adopt(self, staging: Path, job_id: str) -> None:
-        """Make a checked staging folder the job's ``upload/``."""
+    def adopt(self, staging: Path, *, owner: str, job_id: str) -> None:
+        """Make a checked staging folder the job's ``upload/`` (the staging folder is gone afterwards)."""
 
-    @abstractmethod
     def discard(self, staging: Path) -> None:
         """Remove a staging folder whose upload was refused."""
+        shutil.rmtree(staging, ignore_errors=True)
 
     @abstractmethod
-    def job_dir(self, job_id: str) -> Path:
-        """The local folder of a job (``upload/``, ``checkpoints/``, ``result/``) for the worker to compute in."""
+    def workspace(self, *, owner: str, job_id: str) -> Workspace:
+        """The job's local folder, with its upload and checkpoints, for the worker (a context manager)."""
 
     @abstractmethod
-    def write_artifact(self, job_id: str, name: str, data: bytes) -> None:
-        """Write a result file atomically; a rerun overwrites it."""
+    def write_artifact(self, *, owner: str, job_id: str, name: str, data: bytes) -> None:
+        """Write a result file whole; a rerun overwrites it."""
 
     @abstractmethod
-    def artifact_path(self, job_id: str, name: str) -> Path | None:
-        """A local path of a result file to serve, or None when it does not exist."""
+    def open_artifact(self, *, owner: str, job_id: str, name: str) -> Artifact | None:
+        """A result file to stream to a client, or None when it does not exist."""
 
     @abstractmethod
-    def artifact_names(self, job_id: str) -> list[str]:
+    def artifact_names(self, *, owner: str, job_id: str) -> list[str]:
         """Names of the result files present, sorted."""
 
     @abstractmethod
-    def delete(self, job_id: str) -> None:
+    def delete(self, *, owner: str, job_id: str) -> None:
         """Remove every file of a job; nothing happens when there is none."""
 
     @abstractmethod
     def sweep_staging(self, older_than_s: float) -> int:
-        """Remove staging folders left behind (an API process died mid-upload); returns how many."""
+        """Remove what dead processes left behind (uploads never adopted, local copies of jobs); how many."""
+
+
+def read_chunks(path: Path) -> Iterator[bytes]:
+    with open(path, "rb") as f:
+        while chunk := f.read(CHUNK_BYTES):
+            yield chunk
+
+
+def sweep_folders(parent: Path, older_than_s: float) -> int:
+    """Remove the subfolders of ``parent`` last modified more than ``older_than_s`` ago; how many."""
+    cutoff = time.time() - older_than_s
+    removed = 0
+    for path in parent.iterdir() if parent.is_dir() else ():
+        try:
+            if path.stat().st_mtime < cutoff:
+                shutil.rmtree(path, ignore_errors=True)
+                removed += 1
+        except FileNotFoundError:  # removed by another sweeper meanwhile
+            continue
+    return removed
+
+
+class _DirectoryWorkspace(Workspace):
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
 
 
 class DirectoryStorage(Storage):
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root).resolve()  # folders are made on first write
 
+    def job_dir(self, owner: str, job_id: str) -> Path:
+        return self.root / job_key(owner, job_id)
+
     def new_staging(self) -> Path:
         path = self.root / "staging" / uuid.uuid4().hex
         path.mkdir(parents=True)
         return path
 
-    def adopt(self, staging: Path, job_id: str) -> None:
-        job = self.job_dir(job_id)
+    def adopt(self, staging: Path, *, owner: str, job_id: str) -> None:
+        job = self.job_dir(owner, job_id)
         job.mkdir(parents=True, exist_ok=True)
         os.replace(staging, job / "upload")
 
-    def discard(self, staging: Path) -> None:
-        shutil.rmtree(staging, ignore_errors=True)
+    def workspace(self, *, owner: str, job_id: str) -> Workspace:
+        return _DirectoryWorkspace(self.job_dir(owner, job_id))
 
-    def job_dir(self, job_id: str) -> Path:
-        return self.root / "jobs" / check_job_id(job_id)
-
-    def write_artifact(self, job_id: str, name: str, data: bytes) -> None:
-        path = self.job_dir(job_id) / "result" / check_artifact(name)
+    def write_artifact(self, *, owner: str, job_id: str, name: str, data: bytes) -> None:
+        path = self.job_dir(owner, job_id) / "result" / check_artifact(name)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
         partial.write_bytes(data)
         os.replace(partial, path)
 
-    def artifact_path(self, job_id: str, name: str) -> Path | None:
-        path = self.job_dir(job_id) / "result" / check_artifact(name)
-        return path if path.is_file() else None
+    def open_artifact(self, *, owner: str, job_id: str, name: str) -> Artifact | None:
+        path = self.job_dir(owner, job_id) / "result" / check_artifact(name)
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            return None
+        return Artifact(size, read_chunks(path))
 
-    def artifact_names(self, job_id: str) -> list[str]:
-        result = self.job_dir(job_id) / "result"
+    def artifact_names(self, *, owner: str, job_id: str) -> list[str]:
+        result = self.job_dir(owner, job_id) / "result"
         if not result.is_dir():
             return []
         names = (p.relative_to(result).as_posix() for p in result.rglob("*") if p.is_file())
-        return sorted(n for n in names if _ARTIFACT.match(n))
+        return sorted(n for n in names if is_artifact(n))
 
-    def delete(self, job_id: str) -> None:
-        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+    def delete(self, *, owner: str, job_id: str) -> None:
+        shutil.rmtree(self.job_dir(owner, job_id), ignore_errors=True)
 
     def sweep_staging(self, older_than_s: float) -> int:
-        cutoff = time.time() - older_than_s
-        removed = 0
-        staging = self.root / "staging"
-        for path in staging.iterdir() if staging.is_dir() else ():
-            try:
-                if path.stat().st_mtime < cutoff:
-                    shutil.rmtree(path, ignore_errors=True)
-                    removed += 1
-            except FileNotFoundError:  # removed by another sweeper meanwhile
-                continue
-        return removed
+        return sweep_folders(self.root / "staging", older_than_s)
 
 
 def storage_from_settings(settings: Settings) -> Storage:
+    if settings.storage.startswith("s3://"):
+        from .storage_s3 import S3Storage
+
+        return S3Storage.from_url(settings.storage, cache=settings.cache_path)
     return DirectoryStorage(settings.storage)
+

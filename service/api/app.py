@@ -6,6 +6,7 @@ the job and queues its id; workers do the rest.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -24,6 +25,7 @@ from .errors import install_handlers
 from .metrics import make_registry
 from .routes import events, jobs, ops, presets, results
 
+log = logging.getLogger(__name__)
 API_VERSION = "1.0.0"
 DESCRIPTION = """\
 Compression of 3D Gaussian Splatting scenes that removes reflective symmetry (SymGS).
@@ -41,6 +43,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if not settings.keys:
+            log.warning("authentication is OFF (SYMGS_AUTH=none): anyone who reaches this API can use it")
         yield
         await app.state.aredis.aclose()
         app.state.store.r.close()

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas import ErrorResponse
+from worker.storage import StorageError
+
+log = logging.getLogger(__name__)
 
 
 class ApiError(Exception):
@@ -34,7 +39,7 @@ def error_responses(*statuses: int) -> dict[int | str, dict]:
         409: "the job is not in a state that allows this",
         413: "the upload exceeds a limit",
         422: "the request is invalid",
-        503: "Redis or the workers are not reachable",
+        503: "Redis, the workers or the object storage are not reachable",
     }
     return {s: {"model": ErrorResponse, "description": what[s]} for s in statuses}
 
@@ -50,6 +55,14 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api_error(_: Request, exc: ApiError) -> JSONResponse:
         return JSONResponse(error_body(exc.code, exc.message), status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(StorageError)
+    async def _storage(_: Request, exc: StorageError) -> JSONResponse:
+        log.warning("storage failed: %s", exc)
+        return JSONResponse(
+            error_body("storage_unavailable", "the artifact storage is not reachable; try again"),
+            status_code=503, headers={"Retry-After": "5"},
+        )  # fmt: skip
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:

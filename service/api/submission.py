@@ -99,7 +99,7 @@ async def submit(
             if known is not None:  # a concurrent request with the same key won
                 storage.discard(staging)
                 return Submitted(known, created=False)
-        storage.adopt(staging, job_id)
+        await run_in_threadpool(storage.adopt, staging, owner=owner, job_id=job_id)
     except BaseException:
         storage.discard(staging)
         raise

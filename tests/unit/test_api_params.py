@@ -56,5 +56,9 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     assert settings.visibility_timeout > settings.hard_time_limit > settings.soft_time_limit
     with pytest.raises(ValueError, match="HARD_TIME_LIMIT"):
         Settings(soft_time_limit=100, hard_time_limit=50)
-    with pytest.raises(ValueError, match="directory path"):
-        Settings(storage="s3://bucket/jobs")
+    assert Settings(storage="s3://symgs-jobs/prod").storage == "s3://symgs-jobs/prod"
+    with pytest.raises(ValueError, match="directory path or s3://bucket/prefix"):
+        Settings(storage="gs://symgs-jobs/prod")
+    assert Settings(auth="none", api_keys="").keys == []
+    with pytest.raises(ValueError, match="SYMGS_AUTH=none .* SYMGS_API_KEYS is set"):
+        Settings(auth="none", api_keys="k")

@@ -1,4 +1,5 @@
-"""Directory storage: fixed names, atomic overwrite, deletion, and nothing outside a job's folder."""
+"""Directory storage: the tenant/job layout, fixed names, atomic overwrite, deletion, and nothing outside a job's
+folder."""
 
 from __future__ import annotations
 
@@ -11,38 +12,59 @@ import pytest
 from worker.storage import DirectoryStorage
 
 JOB = "0123456789abcdef0123456789abcdef"
+OWNER = "0f1e2d3c4b5a69788796a5b4"
+
+
+def _read(storage: DirectoryStorage, name: str, owner: str = OWNER) -> bytes | None:
+    artifact = storage.open_artifact(owner=owner, job_id=JOB, name=name)
+    if artifact is None:
+        return None
+    data = b"".join(artifact.chunks)
+    assert len(data) == artifact.size
+    return data
 
 
 def test_upload_is_adopted_and_results_overwrite(tmp_path: Path) -> None:
     storage = DirectoryStorage(tmp_path)
     staging = storage.new_staging()
     (staging / "scene.ply").write_bytes(b"ply")
-    storage.adopt(staging, JOB)
-    assert not staging.exists() and (storage.job_dir(JOB) / "upload" / "scene.ply").read_bytes() == b"ply"
+    storage.adopt(staging, owner=OWNER, job_id=JOB)
+    job = tmp_path / "tenants" / OWNER / "jobs" / JOB
+    assert not staging.exists() and (job / "upload" / "scene.ply").read_bytes() == b"ply"
+    with storage.workspace(owner=OWNER, job_id=JOB) as work:
+        assert (work.folder / "upload" / "scene.ply").read_bytes() == b"ply"
+        work.save_checkpoints()
 
-    assert storage.artifact_path(JOB, "result.symgs") is None and storage.artifact_names(JOB) == []
-    storage.write_artifact(JOB, "result.symgs", b"first")
-    storage.write_artifact(JOB, "result.symgs", b"second")
-    storage.write_artifact(JOB, "charts/rate_distortion.png", b"png")
-    assert storage.artifact_path(JOB, "result.symgs").read_bytes() == b"second"
-    assert storage.artifact_names(JOB) == ["charts/rate_distortion.png", "result.symgs"]
-    assert not [p for p in (storage.job_dir(JOB) / "result").rglob("*.part")]
+    assert _read(storage, "result.symgs") is None and storage.artifact_names(owner=OWNER, job_id=JOB) == []
+    storage.write_artifact(owner=OWNER, job_id=JOB, name="result.symgs", data=b"first")
+    storage.write_artifact(owner=OWNER, job_id=JOB, name="result.symgs", data=b"second")
+    storage.write_artifact(owner=OWNER, job_id=JOB, name="charts/rate_distortion.png", data=b"png")
+    assert _read(storage, "result.symgs") == b"second"
+    assert _read(storage, "result.symgs", owner="anonymous") is None  # another tenant's folder
+    assert storage.artifact_names(owner=OWNER, job_id=JOB) == ["charts/rate_distortion.png", "result.symgs"]
+    assert not [p for p in (job / "result").rglob("*.part")]
 
-    storage.delete(JOB)
-    assert not storage.job_dir(JOB).exists()
-    storage.delete(JOB)  # nothing left: no error
+    storage.delete(owner=OWNER, job_id=JOB)
+    assert not job.exists()
+    storage.delete(owner=OWNER, job_id=JOB)  # nothing left: no error
 
 
 @pytest.mark.parametrize("name", ["../x", "result.symgs/../../x", "charts/../../a.png", "charts/a b.png", "other"])
 def test_unknown_artifact_names_are_refused(tmp_path: Path, name: str) -> None:
     with pytest.raises(ValueError, match="artifact"):
-        DirectoryStorage(tmp_path).write_artifact(JOB, name, b"x")
+        DirectoryStorage(tmp_path).write_artifact(owner=OWNER, job_id=JOB, name=name, data=b"x")
 
 
 @pytest.mark.parametrize("job_id", ["../../etc", "ABCDEF0123456789abcdef0123456789", "abc", ""])
 def test_job_ids_are_checked(tmp_path: Path, job_id: str) -> None:
     with pytest.raises(ValueError, match="32 lowercase hex"):
-        DirectoryStorage(tmp_path).job_dir(job_id)
+        DirectoryStorage(tmp_path).workspace(owner=OWNER, job_id=job_id)
+
+
+@pytest.mark.parametrize("owner", ["..", "a/b", "", "A" * 65, "Anonymous"])
+def test_owner_ids_are_checked(tmp_path: Path, owner: str) -> None:
+    with pytest.raises(ValueError, match="owner ids"):
+        DirectoryStorage(tmp_path).delete(owner=owner, job_id=JOB)
 
 
 def test_stale_staging_is_swept(tmp_path: Path) -> None:

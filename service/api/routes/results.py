@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Path
-from fastapi.responses import FileResponse
+from fastapi.responses import StreamingResponse
 
 from api_schemas import Report
 from symgs_core.export.formats import EXPORTS, ExportFormat
@@ -22,16 +22,17 @@ _ERRORS = error_responses(401, 404, 409)
 
 def _artifact(
     job_id: str, name: str, owner: str, store: JobStore, storage: Storage, media_type: str, filename: str
-) -> FileResponse:
+) -> StreamingResponse:
     record = owned_record(store, owner, job_id)
     if record.state in ("queued", "running"):
         raise ApiError(409, "not_ready", f"job {job_id} is {record.state}", headers={"Retry-After": RETRY_AFTER_S})
     if record.state != "succeeded":
         raise ApiError(409, "no_result", f"job {job_id} {record.state}; it has no results")
-    path = storage.artifact_path(job_id, name)
-    if path is None:
+    artifact = storage.open_artifact(owner=record.owner, job_id=job_id, name=name)
+    if artifact is None:
         raise ApiError(404, "artifact_missing", f"job {job_id} has no {name}")
-    return FileResponse(path, media_type=media_type, filename=filename)
+    headers = {"Content-Length": str(artifact.size), "Content-Disposition": f'attachment; filename="{filename}"'}
+    return StreamingResponse(artifact.chunks, media_type=media_type, headers=headers)
 
 
 def _binary(description: str, media_type: str = "application/octet-stream") -> dict:
@@ -43,17 +44,17 @@ def _binary(description: str, media_type: str = "application/octet-stream") -> d
     "/{job_id}/result",
     summary="Download the compressed archive",
     description="The `.symgs` archive; `symgs decompress` or `symgs_core.decompress` decodes it.",
-    response_class=FileResponse,
+    response_class=StreamingResponse,
     responses={**_binary("the .symgs archive"), **_ERRORS},
 )
-def get_result(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+def get_result(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> StreamingResponse:
     return _artifact(job_id, "result.symgs", owner, store, storage, "application/octet-stream", f"{job_id}.symgs")
 
 
 def _export_route(fmt: ExportFormat) -> None:
     """``GET /v1/jobs/{id}/result<extension>`` for one row of the export table."""
 
-    def get_export(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    def get_export(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> StreamingResponse:
         return _artifact(job_id, fmt.artifact, owner, store, storage, fmt.media_type, f"{job_id}{fmt.extension}")
 
     router.add_api_route(
@@ -63,7 +64,7 @@ def _export_route(fmt: ExportFormat) -> None:
         name=f"get_result_{fmt.name}",
         summary=f"Download the decoded scene as {fmt.title}",
         description=fmt.description,
-        response_class=FileResponse,
+        response_class=StreamingResponse,
         responses={**_binary(fmt.title, fmt.media_type), **_ERRORS},
     )
 
@@ -76,10 +77,10 @@ for _fmt in EXPORTS:
     "/{job_id}/report",
     summary="Get the metrics report",
     description="Sizes, compression ratios, PSNR/SSIM, time per stage, every mirror level tried.",
-    response_class=FileResponse,
+    response_class=StreamingResponse,
     responses={200: {"model": Report, "description": "the report"}, **_ERRORS},
 )
-def get_report(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+def get_report(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> StreamingResponse:
     return _artifact(job_id, "report.json", owner, store, storage, "application/json", f"{job_id}-report.json")
 
 
@@ -88,7 +89,7 @@ def get_report(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDe
     summary="Get a chart",
     description="A PNG chart of the job: rate_distortion, speed_accuracy, mirrors, compare_0, ... (those the "
     "pipeline drew).",
-    response_class=FileResponse,
+    response_class=StreamingResponse,
     responses={**_binary("the chart", "image/png"), **_ERRORS},
 )
 def get_chart(
@@ -97,5 +98,5 @@ def get_chart(
     owner: OwnerDep,
     store: StoreDep,
     storage: StorageDep,
-) -> FileResponse:
+) -> StreamingResponse:
     return _artifact(job_id, f"charts/{name}.png", owner, store, storage, "image/png", f"{job_id}-{name}.png")
