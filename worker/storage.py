@@ -63,6 +63,11 @@ class Storage(ABC):
     def job_dir(self, job_id: str) -> Path:
         """The local folder of a job (``upload/``, ``checkpoints/``, ``result/``) for the worker to compute in."""
 
+    def upload_path(self, job_id: str) -> Path | None:
+        """A local path of the scene as uploaded (``upload/scene.ply``), or None when it does not exist."""
+        path = self.job_dir(job_id) / "upload" / "scene.ply"
+        return path if path.is_file() else None
+
     @abstractmethod
     def write_artifact(self, job_id: str, name: str, data: bytes) -> None:
         """Write a result file atomically; a rerun overwrites it."""

@@ -14,7 +14,8 @@ ROUTES = {
     ("post", "/v1/jobs"), ("get", "/v1/jobs"), ("get", "/v1/jobs/{job_id}"), ("delete", "/v1/jobs/{job_id}"),
     ("post", "/v1/jobs/{job_id}:cancel"), ("get", "/v1/jobs/{job_id}/events"), ("get", "/v1/jobs/{job_id}/result"),
     ("get", "/v1/jobs/{job_id}/result.ply"), ("get", "/v1/jobs/{job_id}/result.spz"),
-    ("get", "/v1/jobs/{job_id}/result.compressed.ply"),
+    ("get", "/v1/jobs/{job_id}/result.compressed.ply"), ("get", "/v1/jobs/{job_id}/result.sog"),
+    ("get", "/v1/jobs/{job_id}/result.glb"), ("get", "/v1/jobs/{job_id}/scene"),
     ("get", "/v1/jobs/{job_id}/report"), ("get", "/v1/jobs/{job_id}/charts/{name}.png"), ("get", "/healthz"),
     ("get", "/readyz"), ("get", "/metrics"),
 }  # fmt: skip

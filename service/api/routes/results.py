@@ -73,6 +73,22 @@ for _fmt in EXPORTS:
 
 
 @router.get(
+    "/{job_id}/scene",
+    summary="Download the uploaded scene",
+    description="The `.ply` scene as this job received it, whatever the job's state; the dashboard's viewer shows "
+    "it beside the decoded result.",
+    response_class=FileResponse,
+    responses={**_binary("the uploaded scene", "application/x-ply"), **error_responses(401, 404)},
+)
+def get_scene(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> FileResponse:
+    owned_record(store, owner, job_id)
+    path = storage.upload_path(job_id)
+    if path is None:
+        raise ApiError(404, "artifact_missing", f"job {job_id} has no uploaded scene")
+    return FileResponse(path, media_type="application/x-ply", filename=f"{job_id}-scene.ply")
+
+
+@router.get(
     "/{job_id}/report",
     summary="Get the metrics report",
     description="Sizes, compression ratios, PSNR/SSIM, time per stage, every mirror level tried.",
