@@ -44,6 +44,7 @@ META = "meta.json"
 CODEBOOK = 256
 PALETTE_ROW = 64  # palette entries per row of shN_centroids
 MAX_PALETTE = 1 << 16  # labels are 16 bits
+KMEANS_ENTRIES = 1 << 14  # measured: 16 s of k-means for 200k rows of 24 values on 2 cores
 MAX_SIDE = 16383  # WebP's largest width or height
 HISTOGRAM_BINS = 8192
 LLOYD_STEPS = 24
@@ -67,13 +68,14 @@ def texture_size(n: int) -> tuple[int, int]:
     return width, height
 
 
-def default_palette_size(n: int) -> int:
-    """Entries of the higher-SH palette for ``n`` Gaussians: one per 8 Gaussians, a power of two in 1024..16384.
-
-    PlayCanvas grows its palette to 65536 entries from 64k Gaussians on; measured on the real scenes here, a
-    palette past 16384 entries gains little fidelity for the k-means time it costs on a CPU."""
-    size = 1 << max(0, (n // 8).bit_length() - 1)
-    return int(min(max(size, 1024), 16384))
+def palette_size(rows: np.ndarray) -> int:
+    """Entries of the higher-SH palette for ``rows`` [N, D]: every distinct row when at most 65536 of them (a
+    decoded archive's SH is usually on a grid or a palette already: stored exactly, no k-means), else PlayCanvas'
+    size (1024 entries per doubling of N past 1024) capped at ``KMEANS_ENTRIES`` for the CPU time of the k-means."""
+    distinct = len(np.unique(rows.view(np.dtype((np.void, rows.shape[1] * rows.itemsize)))[:, 0]))
+    if distinct <= MAX_PALETTE:
+        return max(distinct, 1)
+    return min(1024 << max(0, (len(rows) // 1024).bit_length() - 1), KMEANS_ENTRIES)
 
 
 def _log_transform(x: np.ndarray) -> np.ndarray:
@@ -164,16 +166,15 @@ def _pack_quats(wxyz: np.ndarray) -> np.ndarray:
 def sog_files(scene: GaussianScene, *, sh_palette: int | None = None) -> dict[str, bytes]:
     """The unbundled SOG of ``scene``: file name -> bytes, ``meta.json`` first (stored in ``sog_order``).
 
-    ``sh_palette``: entries of the higher-SH palette (default ``default_palette_size``), at most 65536."""
+    ``sh_palette``: entries of the higher-SH palette (default ``palette_size``), at most 65536."""
     n = len(scene)
     if n == 0:
         raise ValueError("a SOG needs at least one Gaussian")
     width, height = texture_size(n)
     if max(width, height) > MAX_SIDE:
         raise ValueError(f"{n} Gaussians need {width}x{height} textures, beyond WebP's {MAX_SIDE} texels a side")
-    size = default_palette_size(n) if sh_palette is None else sh_palette
-    if not 1 <= size <= MAX_PALETTE:
-        raise ValueError(f"sh_palette must be in 1..{MAX_PALETTE}, got {size}")
+    if sh_palette is not None and not 1 <= sh_palette <= MAX_PALETTE:
+        raise ValueError(f"sh_palette must be in 1..{MAX_PALETTE}, got {sh_palette}")
     s = scene.select(sog_order(scene))
     t = {k: v.detach().cpu().double().numpy() for k, v in s.tensors().items()}
     if not all(np.isfinite(v).all() for v in t.values()):
@@ -207,7 +208,7 @@ def sog_files(scene: GaussianScene, *, sh_palette: int | None = None) -> dict[st
         from ..codec.palette import fit_palette
 
         rows = np.ascontiguousarray(t["sh_rest"].transpose(0, 2, 1).reshape(n, 3 * k), dtype=np.float32)
-        entries, labels = fit_palette(rows, size)
+        entries, labels = fit_palette(rows, palette_size(rows) if sh_palette is None else sh_palette)
         sh_book, sh_idx = fit_codebook(entries)
         m = len(entries)
         # Entry e's coefficient j sits at texel (e % 64) * K + j of row e // 64, its three channels in R, G, B.

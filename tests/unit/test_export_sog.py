@@ -169,3 +169,17 @@ def test_readers_refuse_broken_files() -> None:
     for broken, message in cases:
         with pytest.raises(SogError, match=message):
             read_sog_files(broken)
+
+
+def test_decompress_command_writes_the_sog_folder_and_bundle(tmp_path) -> None:  # noqa: ANN001
+    from service.cli import main
+    from symgs_core.codec import ArchiveContents, encode_archive
+
+    scene = on_grids(n=300, degree=1)
+    archive = tmp_path / "scene.symgs"
+    archive.write_bytes(encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {})))
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "web" / "meta.json")]) == 0
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "out.sog")]) == 0
+    folder = import_scene(tmp_path / "web" / "meta.json")
+    assert torch.equal(folder.sh_rest, read_sog((tmp_path / "out.sog").read_bytes()).sh_rest)
+    assert len(folder) == 300 and (tmp_path / "web" / "quats.webp").is_file()
