@@ -47,6 +47,7 @@ class JobLinks(BaseModel):
     events: str
     result: str = Field(description="the .symgs archive")
     report: str
+    scene: str = Field(description="the scene as uploaded (.ply)")
     exports: dict[str, str] = Field(description="the decoded scene in each export format, by format name")
 
 
@@ -93,6 +94,7 @@ class Job(BaseModel):
                         "events": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/events",
                         "result": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result",
                         "report": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/report",
+                        "scene": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/scene",
                         "exports": {
                             "ply": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.ply",
                             "spz": "/v1/jobs/3f2c9a1e0b7d4c55a8e6f1d2c3b4a596/result.spz",

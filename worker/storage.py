@@ -112,6 +112,10 @@ class Storage(ABC):
         """The job's local folder, with its upload and checkpoints, for the worker (a context manager)."""
 
     @abstractmethod
+    def open_upload(self, *, owner: str, job_id: str) -> Artifact | None:
+        """The scene as uploaded (``upload/scene.ply``), opened for reading; None when the job has none."""
+
+    @abstractmethod
     def write_artifact(self, *, owner: str, job_id: str, name: str, data: bytes) -> None:
         """Write a result file whole; a rerun overwrites it."""
 
@@ -186,6 +190,14 @@ class DirectoryStorage(Storage):
 
     def open_artifact(self, *, owner: str, job_id: str, name: str) -> Artifact | None:
         path = self.job_dir(owner, job_id) / "result" / check_artifact(name)
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            return None
+        return Artifact(size, read_chunks(path))
+
+    def open_upload(self, *, owner: str, job_id: str) -> Artifact | None:
+        path = self.job_dir(owner, job_id) / "upload" / "scene.ply"
         try:
             size = path.stat().st_size
         except FileNotFoundError:

@@ -161,7 +161,12 @@ class S3Storage(Storage):
             shutil.rmtree(staging, ignore_errors=True)
 
     def open_artifact(self, *, owner: str, job_id: str, name: str) -> Artifact | None:
-        key = self.key(owner, job_id, "result", check_artifact(name))
+        return self._open(self.key(owner, job_id, "result", check_artifact(name)), name)
+
+    def open_upload(self, *, owner: str, job_id: str) -> Artifact | None:
+        return self._open(self.key(owner, job_id, "upload", "scene.ply"), "the uploaded scene")
+
+    def _open(self, key: str, name: str) -> Artifact | None:
         try:
             with _s3_errors(f"reading {name}"):
                 got = self.client.get_object(Bucket=self.bucket, Key=key)

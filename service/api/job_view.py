@@ -50,7 +50,7 @@ def public_job(record: JobRecord) -> Job:
         updated_at=record.updated_at,
         links=JobLinks(
             self=base, events=f"{base}/events", result=f"{base}/result", report=f"{base}/report",
-            exports={fmt.name: f"{base}/{fmt.artifact}" for fmt in EXPORTS},
+            scene=f"{base}/scene", exports={fmt.name: f"{base}/{fmt.artifact}" for fmt in EXPORTS},
         ),  # fmt: skip
     )
 

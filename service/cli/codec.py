@@ -129,7 +129,7 @@ def _decompress(args: argparse.Namespace) -> int:
     except ArchiveError as exc:
         raise CliError(f"{args.archive}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_bytes(fmt.write(scene, version=args.spz_version))
+    fmt.save(scene, args.output, version=args.spz_version)
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0

@@ -2,8 +2,8 @@
 
 The pages are static files; their scripts use the public ``/v1`` API with the visitor's API key, so the dashboard
 can do nothing a client could not. Every answer carries a Content-Security-Policy that allows this origin only
-(and ``blob:`` images, which is how pictures fetched with an API key are shown): the pages make no request
-elsewhere, and nothing injected into them could.
+(and ``blob:`` images and reads, which is how files fetched with an API key are shown, and ``blob:`` workers, which
+is how the 3D view sorts splats): the pages make no request elsewhere, and nothing injected into them could.
 """
 
 from __future__ import annotations
@@ -27,10 +27,12 @@ MEDIA_TYPES = {
     "job.js": "text/javascript",
     "style.css": "text/css",
     "favicon.svg": "image/svg+xml",
+    "viewer.js": "text/javascript",  # built from viewer/ (see its build.mjs): the PlayCanvas engine
+    "viewer-license.txt": "text/plain",
 }
 CSP = (
-    "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; connect-src 'self'; "
-    "form-action 'none'; base-uri 'none'; frame-ancestors 'none'"
+    "default-src 'none'; script-src 'self'; worker-src blob:; style-src 'self'; img-src 'self' blob:; "
+    "connect-src 'self' blob:; form-action 'none'; base-uri 'none'; frame-ancestors 'none'"
 )
 HEADERS = {
     "Content-Security-Policy": CSP,

@@ -25,18 +25,24 @@ _PUBLIC = {
     "compressed_ply_order": "playcanvas",
     "read_compressed_ply": "playcanvas",
     "write_compressed_ply": "playcanvas",
+    "SogError": "sog",
+    "read_sog": "sog",
+    "sog_files": "sog",
+    "sog_order": "sog",
+    "write_sog": "sog",
+    "GlbError": "glb",
+    "read_glb": "glb",
+    "write_glb": "glb",
 }
 
 
 def export_scene(scene: GaussianScene, path: str | os.PathLike[str], **options: Any) -> ExportFormat:
-    """Write ``scene`` to ``path`` in the format its extension names; returns that format. ``options`` go to the
-    writer (``version`` for `.spz`)."""
-    from pathlib import Path
-
+    """Write ``scene`` to ``path`` in the format its extension names (``meta.json``: the unbundled SOG); returns
+    that format. ``options`` go to the writer (``version`` for `.spz`)."""
     from .formats import by_path
 
     fmt = by_path(path)
-    Path(path).write_bytes(fmt.write(scene, **options))
+    fmt.save(scene, path, **options)
     return fmt
 
 

@@ -4,6 +4,8 @@ Everything that offers a decoded scene reads this table: ``symgs decompress`` (b
 files (``result<extension>``), the HTTP download routes and their OpenAPI entries, the job's links and the dashboard.
 Adding a format is one row here and its writer. The table is standard library only, so the API process, which
 never imports torch, can read it: writers and readers are named as ``module:function`` and imported when called.
+A format that also has an unbundled layout (SOG's ``meta.json`` beside its images) names the file that stands for
+the folder (``folder_entry``) and the function that writes it; the worker and the HTTP API offer the bundle.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ class ExportFormat:
     writer: str  # "module:function" under symgs_core, (scene, **options) -> bytes
     reader: str | None = None  # "module:function" under symgs_core, path -> GaussianScene
     options: tuple[str, ...] = ()  # keyword options the writer takes; others given to ``write`` are not for it
+    folder_entry: str | None = None  # the file name that asks for the unbundled layout, e.g. "meta.json"
+    folder_writer: str | None = None  # "module:function", (scene, entry path, **options) -> None
 
     @property
     def artifact(self) -> str:
@@ -37,6 +41,14 @@ class ExportFormat:
     def write(self, scene: GaussianScene, **options: Any) -> bytes:
         """The file's bytes; of ``options``, those this format takes (``version`` for `.spz`)."""
         return _resolve(self.writer)(scene, **{k: v for k, v in options.items() if k in self.options})
+
+    def save(self, scene: GaussianScene, path: str | os.PathLike[str], **options: Any) -> None:
+        """Write ``scene`` at ``path``: the unbundled layout when ``path`` is named ``folder_entry``, else the file."""
+        mine = {k: v for k, v in options.items() if k in self.options}
+        if self.folder_writer is not None and Path(path).name.lower() == self.folder_entry:
+            _resolve(self.folder_writer)(scene, path, **mine)
+        else:
+            Path(path).write_bytes(self.write(scene, **mine))
 
     def read(self, path: str | os.PathLike[str]) -> GaussianScene:
         if self.reader is None:
@@ -65,6 +77,19 @@ EXPORTS: tuple[ExportFormat, ...] = (
         "The decoded scene in PlayCanvas' compressed PLY layout (quantised in chunks of 256 Gaussians).",
         "export.playcanvas:write_compressed_ply", "export.playcanvas:load_compressed_ply",
     ),
+    ExportFormat(
+        "sog", ".sog", "application/octet-stream", "PlayCanvas SOG",
+        "The decoded scene as a PlayCanvas SOG bundle (a zip of meta.json and lossless WebP images), which the "
+        "PlayCanvas engine, SuperSplat and splat-transform read.",
+        "export.sog:write_sog", "export.sog:load_sog",
+        folder_entry="meta.json", folder_writer="export.sog:save_sog_folder",
+    ),
+    ExportFormat(
+        "glb", ".glb", "model/gltf-binary", "glTF binary (KHR_gaussian_splatting)",
+        "The decoded scene as glTF binary with the Khronos KHR_gaussian_splatting extension (float attributes, "
+        "y-up axes).",
+        "export.glb:write_glb", "export.glb:load_glb",
+    ),
 )  # fmt: skip
 
 
@@ -78,7 +103,7 @@ def by_name(name: str) -> ExportFormat:
 def by_path(path: str | os.PathLike[str]) -> ExportFormat:
     """The format a file name asks for (the longest matching extension); ValueError naming the known ones."""
     name = Path(path).name.lower()
-    matches = [fmt for fmt in EXPORTS if name.endswith(fmt.extension)]
+    matches = [fmt for fmt in EXPORTS if name.endswith(fmt.extension) or name == fmt.folder_entry]
     if not matches:
         raise ValueError(f"unsupported export format for {Path(path).name!r}: use {extensions()}")
     return max(matches, key=lambda fmt: len(fmt.extension))
@@ -86,4 +111,5 @@ def by_path(path: str | os.PathLike[str]) -> ExportFormat:
 
 def extensions() -> str:
     """The known extensions, for help texts and messages."""
-    return ", ".join(fmt.extension for fmt in EXPORTS)
+    folders = [f"{fmt.folder_entry} (unbundled {fmt.extension})" for fmt in EXPORTS if fmt.folder_entry]
+    return ", ".join([fmt.extension for fmt in EXPORTS] + folders)

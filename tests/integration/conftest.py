@@ -115,4 +115,4 @@ def done_job(stack: LocalStack, scene_path: Path) -> dict:
         job = response.json()
         assert response.headers["location"] == f"/v1/jobs/{job['id']}"
         assert response.headers["retry-after"] == "2"
-        return wait_for(api, job["id"], finished)
+        return wait_for(api, job["id"], finished, timeout=300)

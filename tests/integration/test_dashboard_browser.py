@@ -6,15 +6,19 @@ that need it skip only when it is not installed or does not start. Screenshots a
 
 from __future__ import annotations
 
+import io
 import re
 import shutil
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
+from PIL import Image
 from playwright.sync_api import Browser, Page, sync_playwright
 from playwright.sync_api import Error as PlaywrightError
 
@@ -28,6 +32,9 @@ CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",
     "--disable-gpu",
+    # WebGL on the CPU (SwiftShader) for the 3D view, which newer Chromium gives only when asked.
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
     "--disable-background-networking",
     "--disable-component-update",
     "--disable-sync",
@@ -204,6 +211,84 @@ def test_job_page_cancels_a_running_job(stack, browser: Browser, scene_path: Pat
     assert page.locator("#cancel").is_hidden()
     page.screenshot(path=tmp_path / "cancelled.png", full_page=True)
     assert watched.foreign == [] and watched.errors == [], (watched.foreign, watched.errors)
+    watched.context.close()
+
+
+def canvas_pixels(page: Page) -> np.ndarray:
+    """The 3D view as the page shows it: RGB [H, W, 3] float."""
+    with Image.open(io.BytesIO(page.locator("#viewer").screenshot())) as shot:
+        return np.asarray(shot.convert("RGB"), dtype=np.float64)
+
+
+def drawn_share(pixels: np.ndarray) -> float:
+    """Share of the pixels that differ from the view's background (its commonest colour)."""
+    colours, counts = np.unique(pixels.reshape(-1, 3), axis=0, return_counts=True)
+    return float((np.abs(pixels - colours[counts.argmax()]).max(axis=2) > 24).mean())
+
+
+def wait_for_drawing(page: Page, timeout_s: float = 30.0) -> np.ndarray:
+    """The view once splats cover part of it (the depth sort lands a few frames after the scene)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pixels = canvas_pixels(page)
+        if drawn_share(pixels) > 0.01 or time.monotonic() > deadline:
+            return pixels
+        time.sleep(0.5)
+
+
+def settled(page: Page) -> np.ndarray:
+    time.sleep(2.0)  # the view draws for 1.5 s after a change, then rests
+    return canvas_pixels(page)
+
+
+def test_job_page_draws_the_scene_in_3d(stack, browser: Browser, done_job: dict, tmp_path: Path) -> None:  # noqa: ANN001
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    page.goto(f"{stack.api_url}/jobs/{done_job['id']}")
+    if not page.evaluate("() => Boolean(document.createElement('canvas').getContext('webgl2'))"):
+        pytest.skip("this Chromium offers no WebGL 2, not even on the CPU")
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    view = page.locator("#viewer")
+    page.locator('#viewer[data-state="ready"][data-shown="compressed"]').wait_for(timeout=60_000)
+    view.scroll_into_view_if_needed()
+    compressed = wait_for_drawing(page)
+    assert drawn_share(compressed) > 0.01, "the canvas stayed blank"
+    assert "compressed result (.sog)" in page.locator("#viewer-status").inner_text()
+    page.screenshot(path=tmp_path / "viewer.png", full_page=True)
+
+    box = view.bounding_box()
+    before = settled(page)
+    page.mouse.move(box["x"] + box["width"] * 0.5, box["y"] + box["height"] * 0.5)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] * 0.8, box["y"] + box["height"] * 0.6, steps=10)
+    page.mouse.up()
+    dragged = settled(page)
+    assert np.abs(dragged - before).mean() > 1.0, "dragging did not turn the view"
+    assert drawn_share(dragged) > 0.01
+
+    if done_job["mirrors"]:
+        page.get_by_label("Mirror planes").uncheck()
+        bare = settled(page)
+        assert np.abs(bare - dragged).mean() > 0.05, "the mirror planes were not drawn"
+    else:
+        assert page.locator("#planes-choice").is_hidden()
+        bare = dragged
+
+    # The upload, seen from the same place, looks like the result: both are drawn in the same frame.
+    page.get_by_label("Original upload").check()
+    page.locator('#viewer[data-state="ready"][data-shown="original"]').wait_for(timeout=60_000)
+    wait_for_drawing(page)
+    original = settled(page)
+    assert drawn_share(original) > 0.01
+    assert np.abs(original - bare).mean() < 0.25 * np.abs(dragged - before).mean()
+    assert "original upload (.ply)" in page.locator("#viewer-status").inner_text()
+    page.get_by_label("Compressed result").check()
+    page.locator('#viewer[data-shown="compressed"]').wait_for(timeout=10_000)
+    view.screenshot(path=tmp_path / "viewer-canvas.png")
+
+    assert watched.foreign == [], "the 3D view asked another origin"
+    assert watched.errors == [], watched.errors
     watched.context.close()
 
 

@@ -15,6 +15,7 @@ ROUTES = {
     ("post", "/v1/jobs"), ("get", "/v1/jobs"), ("get", "/v1/jobs/{job_id}"), ("delete", "/v1/jobs/{job_id}"),
     ("post", "/v1/jobs/{job_id}:cancel"), ("get", "/v1/jobs/{job_id}/events"), ("get", "/v1/jobs/{job_id}/result"),
     ("get", "/v1/jobs/{job_id}/report"), ("get", "/v1/jobs/{job_id}/charts/{name}.png"), ("get", "/v1/presets"),
+    ("get", "/v1/jobs/{job_id}/scene"),
     ("get", "/healthz"), ("get", "/readyz"), ("get", "/metrics"),
 } | {("get", f"/v1/jobs/{{job_id}}/{fmt.artifact}") for fmt in EXPORTS}  # every row of the export table  # fmt: skip
 

@@ -1,15 +1,10 @@
 """Our `.spz` and `.compressed.ply` read by the real third-party reader, PlayCanvas ``splat-transform`` (npm), and
-its files read by ours. Skips, with the reason, without Node.js or when the package cannot be installed.
-
-The package is installed once into a cache folder outside the repository (``SYMGS_NPM_CACHE``, default
-``~/.cache/symgs/npm``); set ``SPLAT_TRANSFORM`` to an existing executable to use that instead.
+its files read by ours. Skips, with the reason, without Node.js or when the package cannot be installed
+(``tests.npm_tools``: a cache outside the repository; ``SPLAT_TRANSFORM`` names another executable).
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -18,37 +13,14 @@ import torch
 
 from symgs_core.export import compressed_ply_order, read_compressed_ply, read_spz, write_compressed_ply, write_spz
 from symgs_core.ply import load_scene, save_scene
+from tests.npm_tools import SPLAT_TRANSFORM_SPZ, convert
+from tests.npm_tools import splat_transform as installed_splat_transform
 from tests.unit.test_export import assert_within_spz_precision, scene_for_export
-
-PACKAGE = "@playcanvas/splat-transform@2.7.1"
 
 
 @pytest.fixture(scope="module")
 def splat_transform() -> str:
-    given = os.environ.get("SPLAT_TRANSFORM")
-    if given:
-        return given
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        pytest.skip("Node.js/npm not installed: cannot run PlayCanvas splat-transform")
-    cache = Path(os.environ.get("SYMGS_NPM_CACHE", Path.home() / ".cache" / "symgs" / "npm"))
-    exe = cache / "node_modules" / ".bin" / "splat-transform"
-    if not exe.exists():
-        cache.mkdir(parents=True, exist_ok=True)
-        try:
-            done = subprocess.run(
-                ["npm", "install", "--prefix", str(cache), "--no-audit", "--no-fund", PACKAGE],
-                capture_output=True, text=True, timeout=240,
-            )  # fmt: skip
-        except subprocess.TimeoutExpired:
-            pytest.skip(f"npm install {PACKAGE} timed out (registry unreachable?)")
-        if done.returncode != 0 or not exe.exists():
-            pytest.skip(f"npm install {PACKAGE} failed: {done.stderr.strip()[-300:]}")
-    return str(exe)
-
-
-def convert(exe: str, source: Path, target: Path) -> None:
-    done = subprocess.run([exe, "-w", "-q", str(source), str(target)], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
+    return installed_splat_transform(SPLAT_TRANSFORM_SPZ)
 
 
 def assert_same_scene(theirs, ours, atol: float = 1e-5) -> None:  # noqa: ANN001

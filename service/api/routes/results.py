@@ -74,6 +74,23 @@ for _fmt in EXPORTS:
 
 
 @router.get(
+    "/{job_id}/scene",
+    summary="Download the uploaded scene",
+    description="The `.ply` scene as this job received it, whatever the job's state; the dashboard's viewer shows "
+    "it beside the decoded result.",
+    response_class=StreamingResponse,
+    responses={**_binary("the uploaded scene", "application/x-ply"), **error_responses(401, 404)},
+)
+def get_scene(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> StreamingResponse:
+    record = owned_record(store, owner, job_id)
+    upload = storage.open_upload(owner=record.owner, job_id=job_id)
+    if upload is None:
+        raise ApiError(404, "artifact_missing", f"job {job_id} has no uploaded scene")
+    headers = {"Content-Length": str(upload.size), "Content-Disposition": f'attachment; filename="{job_id}-scene.ply"'}
+    return StreamingResponse(upload.chunks, media_type="application/x-ply", headers=headers)
+
+
+@router.get(
     "/{job_id}/report",
     summary="Get the metrics report",
     description="Sizes, compression ratios, PSNR/SSIM, time per stage, every mirror level tried.",

@@ -59,6 +59,13 @@ export async function blobUrl(path) {
   return URL.createObjectURL(await response.blob());
 }
 
+// The bytes of a file the API serves, for code that reads it itself (the 3D view).
+export async function fileBytes(path) {
+  const response = await fetch(path, { headers: authHeaders(), cache: "no-store" });
+  if (!response.ok) throw await failure(response);
+  return response.arrayBuffer();
+}
+
 const sleep = (ms, signal) =>
   new Promise((resolve) => {
     const timer = setTimeout(resolve, ms);

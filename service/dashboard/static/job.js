@@ -8,6 +8,7 @@ import {
   api,
   blobUrl,
   el,
+  fileBytes,
   followEvents,
   formatBytes,
   formatPsnr,
@@ -275,11 +276,88 @@ function showDownloads(job) {
   $("downloads-section").hidden = !list.children.length;
 }
 
+// ---- the 3D view: the decoded result (.sog) or the upload (.ply), with the accepted mirror planes ----------
+
+const viewer = { instance: null, loads: {}, scenes: {} };
+
+function viewerStatus(text) {
+  $("viewer-status").textContent = text;
+}
+
+function describeScene(name) {
+  const { bytes, gaussians, label } = viewer.scenes[name];
+  return `${label}: ${formatBytes(bytes)}, ${gaussians} Gaussians`;
+}
+
+// Loads scene `name` once (a second choice while it loads waits for the same load), then shows it.
+async function showScene(name) {
+  const scene = viewer.scenes[name];
+  const canvas = $("viewer");
+  canvas.dataset.state = "loading";
+  if (!viewer.loads[name]) {
+    viewerStatus(`Loading ${scene.label}${scene.bytes ? ` (${formatBytes(scene.bytes)})` : ""}\u2026`);
+    viewer.loads[name] = fileBytes(scene.href).then((bytes) => {
+      scene.bytes = bytes.byteLength;
+      return viewer.instance.load(name, bytes, scene.filename);
+    });
+  }
+  try {
+    await viewer.loads[name];
+  } catch (err) {
+    delete viewer.loads[name];
+    canvas.dataset.state = "failed";
+    viewerStatus(`Could not load ${scene.label}: ${err.message}`);
+    return;
+  }
+  if (document.querySelector('input[name="scene"]:checked').value !== name) return; // chosen away meanwhile
+  viewer.instance.show(name);
+  canvas.dataset.shown = name;
+  canvas.dataset.state = "ready";
+  viewerStatus(`Showing ${describeScene(name)}.`);
+}
+
+async function showViewer(job, report) {
+  const sog = job.links.exports.sog;
+  if (!sog || !job.artifacts.includes("result.sog") || viewer.instance) return;
+  viewer.scenes = {
+    compressed: {
+      href: sog, filename: "result.sog", label: "the compressed result (.sog)",
+      bytes: null, gaussians: report ? report.gaussians.decoded : "?",
+    },
+    original: {
+      href: job.links.scene, filename: "scene.ply", label: "the original upload (.ply)",
+      bytes: job.scene.bytes, gaussians: job.scene.gaussians,
+    },
+  };
+  $("viewer-section").hidden = false;
+  viewerStatus("Starting the 3D view\u2026");
+  try {
+    const { SplatViewer } = await import("./viewer.js");
+    viewer.instance = SplatViewer.create($("viewer"));
+  } catch (err) {
+    $("viewer").dataset.state = "failed";
+    $("scene-choice").disabled = true;
+    viewerStatus(`This browser cannot show the 3D view (it needs WebGL 2): ${err.message}`);
+    return;
+  }
+  const planes = job.mirrors.map((m) => ({
+    normal: m.normal, offset: m.offset, colour: LEVEL_COLOURS[m.level % LEVEL_COLOURS.length],
+  }));
+  viewer.instance.setMirrors(planes);
+  $("planes-choice").hidden = planes.length === 0;
+  for (const input of document.querySelectorAll('input[name="scene"]')) {
+    input.addEventListener("change", () => showScene(input.value));
+  }
+  $("show-planes").addEventListener("change", (event) => viewer.instance.setPlanesVisible(event.target.checked));
+  await showScene("compressed");
+}
+
 async function showResults(job) {
   if (resultsShown || job.state !== "succeeded") return;
   resultsShown = true;
+  let report = null;
   try {
-    const report = await api(`${jobPath}/report`);
+    report = await api(`${jobPath}/report`);
     showMetrics(job, report);
     showMirrors(report);
   } catch (err) {
@@ -287,6 +365,7 @@ async function showResults(job) {
   }
   showPictures(job);
   showDownloads(job);
+  await showViewer(job, report);
 }
 
 function showSecondsAsStages(job, report) {
