@@ -29,7 +29,9 @@ class JobParams(BaseModel):
     )
 
     preset: Preset | None = Field(None, description="attribute codec and reductions: small, balanced, high, lossless")
-    psnr_budget: float | None = Field(None, ge=0, le=60, description="dB of held-out PSNR the job may cost in total")
+    psnr_budget: float | None = Field(
+        None, ge=0, le=60, allow_inf_nan=False, description="dB of held-out PSNR the job may cost in total"
+    )
     max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
     iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")
     train_views: int | None = Field(None, ge=1, le=512)

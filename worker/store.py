@@ -56,6 +56,13 @@ def events_key(job_id: str) -> str:
     return f"{P}job:{job_id}:events"
 
 
+def _binding(value: str | None) -> tuple[str, str] | None:
+    if value is None:
+        return None
+    job_id, _, fingerprint = value.partition(" ")
+    return job_id, fingerprint
+
+
 def owner_of(api_key: str | None) -> str:
     """The owner id of jobs created with an API key: a digest, so the key itself is never stored."""
     if not api_key:
@@ -294,18 +301,22 @@ class JobStore:
     def _idem_key(self, owner: str, key: str) -> str:
         return f"{P}idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
 
-    def idempotent_job(self, owner: str, key: str) -> str | None:
-        return self.r.get(self._idem_key(owner, key))
+    def idempotent_job(self, owner: str, key: str) -> tuple[str, str] | None:
+        """(job id, request fingerprint) bound to ``key``, or None."""
+        return _binding(self.r.get(self._idem_key(owner, key)))
 
     def forget_idempotency(self, owner: str, key: str) -> None:
         self.r.delete(self._idem_key(owner, key))
 
-    def claim_idempotency(self, owner: str, key: str, job_id: str, ttl_s: int) -> str | None:
-        """Bind ``key`` to ``job_id``; returns the job id already bound to it, or None when the claim won."""
+    def claim_idempotency(
+        self, owner: str, key: str, job_id: str, fingerprint: str, ttl_s: int
+    ) -> tuple[str, str] | None:
+        """Bind ``key`` to ``job_id`` and the request's ``fingerprint``; returns the (job id, fingerprint) already
+        bound to it, or None when the claim won."""
         name = self._idem_key(owner, key)
-        if self.r.set(name, job_id, nx=True, ex=ttl_s):
+        if self.r.set(name, f"{job_id} {fingerprint}", nx=True, ex=ttl_s):
             return None
-        return self.r.get(name)
+        return _binding(self.r.get(name))
 
     # -- cancellation ------------------------------------------------------------------------------------------
 

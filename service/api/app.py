@@ -20,6 +20,7 @@ from worker.storage import storage_from_settings
 from worker.store import JobStore
 
 from ..dashboard.routes import router as dashboard_router
+from .allow import AllowedMethods
 from .errors import install_handlers
 from .metrics import make_registry
 from .routes import events, jobs, ops, results
@@ -65,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.celery = make_celery(settings)
     app.state.registry = make_registry(store, settings)
     install_handlers(app)
+    app.add_middleware(AllowedMethods)
     for module in (jobs, events, results, ops):
         app.include_router(module.router)
     app.include_router(dashboard_router)

@@ -103,9 +103,12 @@ def _wait(child: Child, ready, timeout: float, what: str) -> None:  # noqa: ANN0
 class LocalStack:
     """redis-server, the API and workers on free ports, with storage in a temporary folder.
 
-    ``env`` holds extra ``SYMGS_*`` settings for every process (API keys, limits, lease length, ...)."""
+    ``env`` holds extra ``SYMGS_*`` settings for every process (API keys, limits, lease length, ...). With
+    ``durable_redis`` Redis logs every write to its append-only file before answering, so a restart, even after
+    SIGKILL, comes back with every job and queued message."""
 
     env: dict[str, str] = field(default_factory=dict)
+    durable_redis: bool = False
     root: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="symgs-stack-")))
     children: list[Child] = field(default_factory=list)
     workers: list[Child] = field(default_factory=list)
@@ -120,20 +123,31 @@ class LocalStack:
         return env
 
     def start_redis(self, timeout: float = 20) -> None:
+        """Start redis-server: on a free port the first time, on the same port again after ``stop_redis``."""
         binary = shutil.which("redis-server")
         if binary is None:
             raise StackError("redis-server is not installed (apt-get install redis-server)")
-        port = free_port()
+        port = int(self.redis_url.rsplit(":", 1)[1].split("/")[0]) if self.redis_url else free_port()
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)
-        argv = [binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(data), "--save", "",
-                "--appendonly", "no", "--loglevel", "warning"]  # fmt: skip
+        aof = ["--appendonly", "yes", "--appendfsync", "always"] if self.durable_redis else ["--appendonly", "no"]
+        argv = [binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(data), "--save", "", *aof,
+                "--loglevel", "warning"]  # fmt: skip
         child = _spawn("redis", argv, os.environ.copy(), self.root)
-        self.children.append(child)
+        self.children.insert(0, child)  # stopped last
         self.redis_url = f"redis://127.0.0.1:{port}/0"
         client = redis.Redis.from_url(self.redis_url)
         _wait(child, client.ping, timeout, "answer PING")
         client.close()
+
+    def stop_redis(self, *, kill: bool = False) -> None:
+        """Stop redis-server (SIGKILL with ``kill``: a crash); ``start_redis`` brings it back on the same port."""
+        for child in [c for c in self.children if c.name == "redis"]:
+            if kill:
+                child.kill()
+            else:
+                child.stop(timeout=10)
+            self.children.remove(child)
 
     def start_api(self, timeout: float = 30) -> None:
         port = free_port()

@@ -87,12 +87,12 @@ def test_listing_pages_and_filters(store: JobStore) -> None:
 
 
 def test_idempotency_is_per_owner(store: JobStore) -> None:
-    assert store.claim_idempotency("o1", "k", "a" * 32, 60) is None
-    assert store.claim_idempotency("o1", "k", "b" * 32, 60) == "a" * 32
-    assert store.claim_idempotency("o2", "k", "c" * 32, 60) is None
-    assert store.idempotent_job("o1", "k") == "a" * 32
+    assert store.claim_idempotency("o1", "k", "a" * 32, "f1", 60) is None
+    assert store.claim_idempotency("o1", "k", "b" * 32, "f2", 60) == ("a" * 32, "f1")
+    assert store.claim_idempotency("o2", "k", "c" * 32, "f1", 60) is None
+    assert store.idempotent_job("o1", "k") == ("a" * 32, "f1")
     store.forget_idempotency("o1", "k")
-    assert store.idempotent_job("o1", "k") is None and store.claim_idempotency("o1", "k", "d" * 32, 60) is None
+    assert store.idempotent_job("o1", "k") is None and store.claim_idempotency("o1", "k", "d" * 32, "f", 60) is None
     assert owner_of(None) == "anonymous" and owner_of("key") != owner_of("key2") and "key" not in owner_of("key")
 
 
