@@ -119,8 +119,12 @@ def _decompress(args: argparse.Namespace) -> int:
         scene = expand_archive(decode_archive(args.archive.read_bytes()))
     except ArchiveError as exc:
         raise CliError(f"{args.archive}: {exc}") from exc
+    try:
+        data = fmt.write(scene, version=args.spz_version)
+    except ValueError as exc:  # a scene the format cannot hold (e.g. positions beyond .spz's fixed point)
+        raise CliError(f"{args.output}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_bytes(fmt.write(scene, version=args.spz_version))
+    args.output.write_bytes(data)
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0
