@@ -106,9 +106,11 @@ def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 5, sh_r
     flip = np.array([1.0, -1.0, -1.0])
     means = t["means"] * flip
     frac = _fractional_bits(means)
+    if means.size and float(np.abs(means).max()) >= (1 << 23) - 1:
+        raise ValueError(f"spz: positions up to {float(np.abs(means).max()):g} do not fit its 24-bit fixed point")
     fixed = np.round(means * (1 << frac)).astype(np.int64) & 0xFFFFFF
     positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N, 3, 3]
-    alphas = _u8(255.0 / (1.0 + np.exp(-t["opacities"])))
+    alphas = _u8(255.0 * (0.5 + 0.5 * np.tanh(0.5 * t["opacities"])))  # the sigmoid, without overflow
     colors = _u8(t["sh_dc"] * (COLOR_SCALE * 255.0) + 127.5)
     scales = _u8((t["scales"] + 10.0) * 16.0)
     wxyz = t["quats"]
