@@ -1,18 +1,18 @@
 """Jobs through worker kills and Redis restarts: how many accepted jobs end without their result.
 
 A local stack (``service.cli.stack.LocalStack``: redis-server with its append-only file synced on every write, the
-API, CPU workers) runs ``--jobs`` small jobs, all of the same scene and parameters, submitted by a client that
-retries with an Idempotency-Key whenever the API answers 503 or cannot be reached. Meanwhile, every ``--every``
-seconds, one fault in turn: a worker and its pool killed with SIGKILL (a replacement started), or Redis stopped,
-with SIGKILL or SIGTERM alternately, and started again. When the planned faults are done and every job has
-finished, it counts:
+API, CPU workers) runs ``--jobs`` small jobs, all of the same scene and parameters, submitted one every ``--pace``
+seconds by a client that retries with an Idempotency-Key whenever the API answers 503 or cannot be reached.
+Meanwhile, every ``--every`` seconds, one fault in turn: a worker and its pool killed with SIGKILL (a replacement
+started), or Redis stopped, with SIGKILL or SIGTERM alternately, and started again. When the planned faults are done
+and every job has finished, it counts:
 
     lost        accepted, then never finished, or gone from the store
     failed      finished as failed (by error code: ``worker_lost`` after ``SYMGS_MAX_ATTEMPTS`` runs, ...)
     succeeded   and how many distinct results they hold (the same job must give the same bytes however often it was
                 interrupted)
 
-    .venv/bin/python benchmarks/fault_jobs.py --jobs 100 --workers 2 --kills 10 --restarts 10 --every 8
+    .venv/bin/python benchmarks/fault_jobs.py --jobs 100 --workers 2 --kills 10 --restarts 10 --every 8 --pace 1.5
 """
 
 from __future__ import annotations
@@ -64,10 +64,13 @@ def _client(stack: LocalStack) -> httpx.Client:
     return httpx.Client(base_url=stack.api_url, headers={"Authorization": f"Bearer {KEY}"}, timeout=30)
 
 
-def _submit_all(stack: LocalStack, scene: bytes, jobs: int, outcome: Outcome, stop: threading.Event) -> None:
-    """Submit every job, retrying each with its Idempotency-Key until the API accepts it."""
+def _submit_all(
+    stack: LocalStack, scene: bytes, jobs: int, pace: float, outcome: Outcome, stop: threading.Event
+) -> None:
+    """Submit a job every ``pace`` seconds, retrying each with its Idempotency-Key until the API accepts it."""
     with _client(stack) as api:
         for number in range(jobs):
+            stop.wait(pace if number else 0)
             while not stop.is_set():
                 try:
                     response = api.post(
@@ -107,32 +110,34 @@ def plan(kills: int, restarts: int) -> list[str]:
             if i < count]  # fmt: skip
 
 
-def _fault(stack: LocalStack, kind: str, number: int, rng: random.Random) -> str:
+def _fault(stack: LocalStack, kind: str, done: list[str], rng: random.Random) -> str:
+    """Cause one fault of ``kind``; Redis restarts alternate between SIGKILL and SIGTERM (``done``: faults so far)."""
     if kind == "kill":
         victim = rng.choice(stack.workers)
         victim.kill()
         stack.workers.remove(victim)
         stack.start_worker("cpu")
         return "worker killed"
-    crash = number % 2 == 0
+    crash = sum(fault.startswith("redis") for fault in done) % 2 == 0
     stack.stop_redis(kill=crash)
     time.sleep(rng.uniform(0.2, 1.5))  # down for a moment; jobs' leases outlive it
     stack.start_redis()
     return "redis killed and restarted" if crash else "redis stopped and restarted"
 
 
-def run(stack: LocalStack, scene: bytes, *, jobs: int, kills: int, restarts: int, every: float, timeout: float,
-        seed: int = 0) -> Outcome:  # fmt: skip
-    """Submit ``jobs`` jobs to a started ``stack`` while faults happen; returns what became of them."""
+def run(stack: LocalStack, scene: bytes, *, jobs: int, kills: int, restarts: int, every: float, pace: float,
+        timeout: float, seed: int = 0) -> Outcome:  # fmt: skip
+    """Submit ``jobs`` jobs, one every ``pace`` seconds, to a started ``stack`` while a fault happens every
+    ``every`` seconds; returns what became of them."""
     rng, outcome, stop = random.Random(seed), Outcome(), threading.Event()
     started = time.monotonic()
-    submitter = threading.Thread(target=_submit_all, args=(stack, scene, jobs, outcome, stop), daemon=True)
+    submitter = threading.Thread(target=_submit_all, args=(stack, scene, jobs, pace, outcome, stop), daemon=True)
     submitter.start()
     faults, next_fault = plan(kills, restarts), started + every
     with _client(stack) as api:
         while time.monotonic() - started < timeout:
             if faults and time.monotonic() >= next_fault:
-                outcome.faults.append(_fault(stack, faults.pop(0), len(outcome.faults), rng))
+                outcome.faults.append(_fault(stack, faults.pop(0), outcome.faults, rng))
                 next_fault = time.monotonic() + every
             if _poll(api, outcome) and not submitter.is_alive() and not faults:
                 break
@@ -165,6 +170,7 @@ def main() -> None:
     parser.add_argument("--kills", type=int, default=10)
     parser.add_argument("--restarts", type=int, default=10)
     parser.add_argument("--every", type=float, default=8.0, help="seconds between faults")
+    parser.add_argument("--pace", type=float, default=1.5, help="seconds between submissions")
     parser.add_argument("--lease", type=float, default=5.0, help="SYMGS_LEASE_SECONDS of the stack")
     parser.add_argument("--timeout", type=float, default=3600.0)
     parser.add_argument("--json", type=Path)
@@ -172,7 +178,7 @@ def main() -> None:
     stack = fault_stack(args.workers, args.lease)
     try:
         outcome = run(stack, scene_bytes(), jobs=args.jobs, kills=args.kills, restarts=args.restarts,
-                      every=args.every, timeout=args.timeout)  # fmt: skip
+                      every=args.every, pace=args.pace, timeout=args.timeout)  # fmt: skip
     finally:
         stack.cleanup()
     summary = outcome.summary()

@@ -31,7 +31,7 @@ class CompressTask(Task):
     @property
     def store(self) -> JobStore:
         if self._store is None:
-            self._store = JobStore.from_url(get_settings().redis_url)
+            self._store = JobStore.from_url(get_settings().redis_url, patient=True)
         return self._store
 
     def on_failure(self, exc, task_id, args, kwargs, einfo) -> None:  # noqa: ANN001 - Celery's signature

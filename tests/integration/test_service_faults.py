@@ -18,7 +18,7 @@ def test_no_job_is_lost_to_worker_kills_and_redis_restarts() -> None:
         pytest.skip("redis-server is not installed (apt-get install redis-server)")
     stack = fault_stack(workers=1, lease_s=3)
     try:
-        outcome = run(stack, scene_bytes(), jobs=4, kills=1, restarts=2, every=4, timeout=150)
+        outcome = run(stack, scene_bytes(), jobs=4, kills=1, restarts=2, every=4, pace=2, timeout=150)
     finally:
         stack.cleanup()
     summary = outcome.summary()
