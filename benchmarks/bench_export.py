@@ -6,8 +6,8 @@ from held-out cameras against the decode itself, as ``symgs evaluate DECODE.ply 
 
     ours .spz v3 / v4           our writer (``symgs decompress -o x.spz``)
     ours .compressed.ply        our PlayCanvas compressed PLY writer
-    splat-transform .spz        splat-transform's own .spz of the decode (the reference choices: 12 fractional
-                                bits, SH rounded to 5 and 4 bits)
+    splat-transform .spz        splat-transform's own .spz of the decode (its default, version 4; the reference
+                                choices: 12 fractional bits, SH rounded to 5 and 4 bits)
     splat-transform .compressed.ply
 
 and, for our rows and splat-transform's .spz, where the loss lies: the decode with one attribute taken from the

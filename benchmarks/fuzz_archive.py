@@ -52,6 +52,12 @@ OUTCOMES = ("refused", "accepted", "non_finite", "crash", "hang")
 # ---------------------------------------------------------------------------------------------------- seeds
 
 
+def seeds_of(archives: tuple[str, ...], generated: bool = True) -> tuple[tuple[str, bytes], ...]:
+    """The generated seeds (unless ``generated`` is false) and the archives at ``archives``."""
+    given = tuple((Path(a).name, Path(a).read_bytes()) for a in archives)
+    return (generated_seeds() if generated else ()) + given
+
+
 @lru_cache(maxsize=1)
 def generated_seeds() -> tuple[tuple[str, bytes], ...]:
     """(name, archive) of small generated scenes, one per archive codec, levels and SH degree."""
@@ -245,7 +251,11 @@ def mutant(index: int, seed: int, seeds: tuple[tuple[str, bytes], ...]) -> tuple
     name, data = seeds[int(rng.integers(0, len(seeds)))]
     names = list(WEIGHTS)
     which = names[int(rng.choice(len(names), p=[WEIGHTS[n] for n in names]))]
-    return name, which, MUTATORS[which][1](rng, data)
+    for _ in range(10):  # a mutation can undo itself (the same bit flipped twice): draw again
+        mutated = MUTATORS[which][1](rng, data)
+        if mutated != data:
+            break
+    return name, which, mutated
 
 
 # ---------------------------------------------------------------------------------------------------- running
@@ -293,9 +303,9 @@ class Tally:
         self.examples.extend(other.examples)
 
 
-def run_chunk(start: int, stop: int, seed: int, timeout: float, archives: tuple[str, ...]) -> Tally:
+def run_chunk(start: int, stop: int, seed: int, timeout: float, archives: tuple[str, ...], generated: bool) -> Tally:
     torch.set_num_threads(1)
-    seeds = generated_seeds() + tuple((Path(a).name, Path(a).read_bytes()) for a in archives)
+    seeds = seeds_of(archives, generated)
     signal.signal(signal.SIGALRM, _alarm)
     tally = Tally()
     for index in range(start, stop):
@@ -320,19 +330,19 @@ def run_chunk(start: int, stop: int, seed: int, timeout: float, archives: tuple[
 
 
 def fuzz(mutants: int, *, seed: int = 0, workers: int = 1, timeout: float = 5.0, chunk: int = 500,
-         archives: tuple[str, ...] = ()) -> Tally:  # fmt: skip
+         archives: tuple[str, ...] = (), generated: bool = True) -> Tally:  # fmt: skip
     """Run ``mutants`` mutants in ``workers`` processes (in this process when 1)."""
     tally = Tally()
     spans = [(i, min(i + chunk, mutants)) for i in range(0, mutants, chunk)]
     if workers <= 1:
         for start, stop in spans:
-            tally.add(run_chunk(start, stop, seed, timeout, archives))
+            tally.add(run_chunk(start, stop, seed, timeout, archives, generated))
         return tally
     pending = spans
     while pending:
         again = []
         with ProcessPoolExecutor(workers) as pool:
-            futures = [(pool.submit(run_chunk, start, stop, seed, timeout, archives), (start, stop))
+            futures = [(pool.submit(run_chunk, start, stop, seed, timeout, archives, generated), (start, stop))
                        for start, stop in pending]  # fmt: skip
             for future, (start, stop) in futures:
                 try:
@@ -368,18 +378,19 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds before a decode counts as a hang")
     parser.add_argument("--archive", action="append", default=[], help="another seed archive (.symgs)")
+    parser.add_argument("--only-archives", action="store_true", help="no generated seeds: the --archive ones only")
     parser.add_argument("--replay", type=int, help="decode mutant INDEX and print what happens")
     parser.add_argument("--json", type=Path, help="write the counts here")
     args = parser.parse_args()
     if args.replay is not None:
-        seeds = generated_seeds() + tuple((Path(a).name, Path(a).read_bytes()) for a in args.archive)
+        seeds = seeds_of(tuple(args.archive), not args.only_archives)
         name, which, data = mutant(args.replay, args.seed, seeds)
         print(f"mutant {args.replay}: seed {name}, mutator {which}, {len(data)} bytes")
         print(classify(data))
         return
     started = time.perf_counter()
     tally = fuzz(args.mutants, seed=args.seed, workers=args.workers, timeout=args.timeout,
-                 archives=tuple(args.archive))  # fmt: skip
+                 archives=tuple(args.archive), generated=not args.only_archives)  # fmt: skip
     seconds = time.perf_counter() - started
     print(report(tally, seconds))
     if args.json is not None:

@@ -170,7 +170,7 @@ def _record_and_queue(record: JobRecord, store: JobStore, celery: Celery) -> Non
         try:
             store.delete(record.id)
         except RedisError:
-            pass  # Redis is out of reach: a record written before it went stays queued, with no message and no files
+            pass  # Redis went away meanwhile: the record stays, and the job fails for want of its files
         if isinstance(exc, RedisError):
             raise
         raise ApiError(503, "unavailable", "the job queue is not reachable; try again") from None

@@ -14,9 +14,9 @@ sizes and one zstd frame per non-empty attribute block.
 Where the writer departs from the reference tool's choices, within the format, to keep what our archives decode to:
   * fractional bits: the reference writes 12 (a step of 2^-12 whatever the scene's size), which on a 0.2-unit object
     such as the donut costs more than anything else (49 dB against the decode it was written from). We give
-    positions a step of at most 2^-18 of the scene's extent (a quarter of the archive's finest default position
+    positions a step of at most 2^-18 of the scene's extent (a quarter of the balanced preset's starting position
     step), never coarser than 2^-12 and within what 24 bits hold at the scene's reach: the donut's export goes to
-    21 bits and 53 dB, for 14% more bytes.
+    21 bits and 53 dB, for 15% more bytes (BENCHMARKS.md, "Exports").
   * SH at 8 bits: the reference rounds degree 1 to 5 bits and higher bands to 4, a step of 1/8 against the archive's
     SH steps of 1/32 or finer: 41 dB on the kacytran scene (SH 3) where 8 bits give 52 dB for 0.5% more bytes, since
     the decoded SH take few distinct values either way. ``sh1_bits``/``sh_rest_bits`` still choose.
