@@ -145,7 +145,7 @@ def read_entries(archive: Path, limits: ArchiveLimits) -> list[Entry]:
     """Every entry of a zip or tar, from its directory or headers, checked before anything is written: names,
     kinds, count and declared sizes."""
     budget = _Budget(limits, byte_cap(archive, limits))
-    with _opened(archive) as opened:
+    with _Opened(archive) as opened:
         if isinstance(opened, zipfile.ZipFile):
             return _zip_entries(opened, budget)
         return [entry for entry, _ in _tar_entries(opened, budget)]
@@ -156,7 +156,7 @@ def byte_cap(archive: Path, limits: ArchiveLimits) -> int:
     return min(limits.max_bytes, max(RATIO_FLOOR, MAX_RATIO * archive.stat().st_size))
 
 
-class _opened:
+class _Opened:
     """The archive opened as a ZipFile or a streaming TarFile; its errors become 422 ``bad_archive``."""
 
     def __init__(self, archive: Path) -> None:
@@ -222,7 +222,7 @@ def _write_all(archive: Path, entries: list[Entry], dest: Path, limits: ArchiveL
     """Extract ``entries`` (as ``read_entries`` found them) into ``dest``; returns the bytes written."""
     writer = _Writer(dest, _Budget(limits, byte_cap(archive, limits)))
     dest.mkdir(parents=True, exist_ok=True)
-    with _opened(archive) as opened:
+    with _Opened(archive) as opened:
         if isinstance(opened, zipfile.ZipFile):
             for entry, info in zip(entries, opened.infolist(), strict=True):
                 if entry.is_dir:
