@@ -20,7 +20,8 @@ import httpx
 from service.cli.stack import LocalStack
 from service.client import SymgsClient
 
-TINY = {"iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64, "max_levels": 1, "device": "cpu"}
+TINY = {"iterations": 20, "train_views": 4, "fit_views": 2, "eval_views": 2, "resolution": 64, "eval_resolution": 64,
+        "max_levels": 1, "device": "cpu"}
 
 
 def percentile(values: list[float], q: float) -> float:

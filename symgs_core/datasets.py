@@ -71,8 +71,11 @@ class DatasetError(ValueError):
     """
 
     def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
+        super().__init__(code, message)  # both, so a pickled copy (Celery's failure hook) keeps the code
+        self.code, self.message = code, message
+
+    def __str__(self) -> str:
+        return self.message
 
 
 @dataclass

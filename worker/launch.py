@@ -35,8 +35,8 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
     @signals.worker_ready.connect(weak=False)
     def _start(**_: object) -> None:
         thread = Maintenance(
-            store=JobStore.from_url(settings.redis_url), storage=storage_from_settings(settings), celery=app,
-            settings=settings, mode=mode, name=name,
+            store=JobStore.from_url(settings.redis_url, patient=True), storage=storage_from_settings(settings),
+            celery=app, settings=settings, mode=mode, name=name,
         )  # fmt: skip
         thread.start()
         maintenance.append(thread)

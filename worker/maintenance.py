@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from celery import Celery
 from redis import RedisError
 
-from .celery_app import send_compress
+from .celery_app import QUEUES, send_compress
 from .routing import choose_queue
 from .settings import Settings
 from .storage import Storage
@@ -69,6 +69,30 @@ def recover_lost(store: JobStore, celery: Celery, settings: Settings, report: Sw
                 log.warning("job %s lost its worker; queued again on %s", job_id, queue)
 
 
+def recover_dropped(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
+    """Send again a queued job whose message is neither waiting in its queue nor being run.
+
+    A worker that took a message and lost Redis before starting the job lets it go: acknowledged with the failed
+    task, or left in the broker's set of unacknowledged messages until the visibility timeout, hours away. Such a
+    job has waited longer than a lease while its queue is empty and no worker holds its lease. It is sent once per
+    lease period; should the first message surface after all, the lease lets one delivery run the job and the other
+    skip it.
+    """
+    empty = {queue for queue, depth in store.queue_depth(QUEUES).items() if depth == 0}
+    if not empty:
+        return
+    stale = time.time() - settings.lease_seconds
+    for job_id in store.ids_in_state("queued"):
+        record = store.get(job_id)
+        if record is None or record.state != "queued" or record.queue not in empty or record.updated_at > stale:
+            continue
+        if store.lease_held(job_id) or not store.claim_resend(job_id, settings.lease_seconds):
+            continue
+        send_compress(celery, job_id, record.queue)
+        report.requeued.append(job_id)
+        log.warning("job %s waited with no message in queue %s; sent again", job_id, record.queue)
+
+
 def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
     """Send ``auto`` jobs waiting on the gpu queue to the cpu queue when no GPU worker is alive any more.
 
@@ -98,6 +122,7 @@ def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepR
 def sweep(store: JobStore, storage: Storage, celery: Celery, settings: Settings) -> SweepReport:
     report = SweepReport()
     recover_lost(store, celery, settings, report)
+    recover_dropped(store, celery, settings, report)
     reroute_stranded(store, celery, settings, report)
     expire(store, storage, settings, report)
     return report

@@ -34,11 +34,16 @@ _PROGRESS_EVERY_S = 0.25  # progress reports within one stage and level are thin
 
 
 class JobInputError(ValueError):
-    """A job the pipeline refuses before starting; ``code`` is machine-readable, as in PlyError."""
+    """A job the pipeline refuses before starting; ``code`` is machine-readable, as in PlyError.
+
+    Both go to the base class: Celery hands the failure hook a pickled copy, rebuilt from ``args``."""
 
     def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
+        super().__init__(code, message)
+        self.code, self.message = code, message
+
+    def __str__(self) -> str:
+        return self.message
 
 
 class _Heartbeat(threading.Thread):
@@ -222,6 +227,17 @@ def _delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None
     if record is not None and record.delete_requested and record.finished:
         storage.delete(owner=record.owner, job_id=job_id)
         store.delete(job_id)
+
+
+def failure_of(exc: BaseException) -> tuple[str, str]:
+    """The code and message a failed job records: an input error keeps its own code (the client is told what is
+    wrong with what it sent); anything else is ``internal_error``."""
+    from symgs_core.datasets import DatasetError
+    from symgs_core.ply_header import PlyError
+
+    if isinstance(exc, (PlyError, DatasetError, JobInputError)):
+        return exc.code, str(exc)
+    return "internal_error", str(exc) or type(exc).__name__
 
 
 def mark_failed(

@@ -10,7 +10,8 @@ Keys (prefix ``symgs:``)::
     jobs:state:<state>       zset id -> created_at
     jobs:finished            zset id -> finished_at (for expiry)
     owner:<o>:jobs, owner:<o>:state:<state>   zset id -> created_at (listing per API key)
-    idem:<o>:<key hash>      id of the job created with that Idempotency-Key
+    job:<id>:resent          flag: a sweep sent the queued job's message again (maintenance.recover_dropped)
+    idem:<o>:<key hash>      id of the job created with that Idempotency-Key, and its request's fingerprint
     workers:<mode>           zset worker name -> last heartbeat
     metrics:durations        hash: histogram of job durations (bucket counters, sum, count)
 
@@ -28,6 +29,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import redis
+from redis.backoff import ExponentialWithJitterBackoff
+from redis.retry import Retry
 
 from api_schemas import TERMINAL_STATES, JobEvent, JobParams
 
@@ -46,6 +49,8 @@ _ALLOWED = {  # to-state -> from-states
 # Renew or release a lease only while it still holds our token.
 _RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
 _RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
+# The workers' client waits out a Redis restart (about 30 s of retries) rather than failing the job it runs.
+PATIENT = Retry(ExponentialWithJitterBackoff(base=0.1, cap=2.0), retries=20)
 
 
 def job_key(job_id: str) -> str:
@@ -54,6 +59,13 @@ def job_key(job_id: str) -> str:
 
 def events_key(job_id: str) -> str:
     return f"{P}job:{job_id}:events"
+
+
+def _binding(value: str | None) -> tuple[str, str] | None:
+    if value is None:
+        return None
+    job_id, _, fingerprint = value.partition(" ")
+    return job_id, fingerprint
 
 
 def owner_of(api_key: str | None) -> str:
@@ -180,8 +192,11 @@ class JobStore:
         self._release = client.register_script(_RELEASE)
 
     @classmethod
-    def from_url(cls, url: str) -> JobStore:
-        return cls(redis.Redis.from_url(url, decode_responses=True, health_check_interval=30))
+    def from_url(cls, url: str, *, patient: bool = False) -> JobStore:
+        """A store on Redis at ``url``; ``patient`` (workers) retries through a Redis restart, where the API answers
+        503 at once."""
+        retry = {"retry": PATIENT} if patient else {}
+        return cls(redis.Redis.from_url(url, decode_responses=True, health_check_interval=30, **retry))
 
     # -- records -----------------------------------------------------------------------------------------------
 
@@ -294,18 +309,22 @@ class JobStore:
     def _idem_key(self, owner: str, key: str) -> str:
         return f"{P}idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
 
-    def idempotent_job(self, owner: str, key: str) -> str | None:
-        return self.r.get(self._idem_key(owner, key))
+    def idempotent_job(self, owner: str, key: str) -> tuple[str, str] | None:
+        """(job id, request fingerprint) bound to ``key``, or None."""
+        return _binding(self.r.get(self._idem_key(owner, key)))
 
     def forget_idempotency(self, owner: str, key: str) -> None:
         self.r.delete(self._idem_key(owner, key))
 
-    def claim_idempotency(self, owner: str, key: str, job_id: str, ttl_s: int) -> str | None:
-        """Bind ``key`` to ``job_id``; returns the job id already bound to it, or None when the claim won."""
+    def claim_idempotency(
+        self, owner: str, key: str, job_id: str, fingerprint: str, ttl_s: int
+    ) -> tuple[str, str] | None:
+        """Bind ``key`` to ``job_id`` and the request's ``fingerprint``; returns the (job id, fingerprint) already
+        bound to it, or None when the claim won."""
         name = self._idem_key(owner, key)
-        if self.r.set(name, job_id, nx=True, ex=ttl_s):
+        if self.r.set(name, f"{job_id} {fingerprint}", nx=True, ex=ttl_s):
             return None
-        return self.r.get(name)
+        return _binding(self.r.get(name))
 
     # -- cancellation ------------------------------------------------------------------------------------------
 
@@ -332,6 +351,10 @@ class JobStore:
 
     def lease_held(self, job_id: str) -> bool:
         return bool(self.r.exists(f"{P}job:{job_id}:lease"))
+
+    def claim_resend(self, job_id: str, ttl_s: float) -> bool:
+        """One sweep wins the resending of a queued job's message, once per ``ttl_s``."""
+        return bool(self.r.set(f"{P}job:{job_id}:resent", "1", nx=True, px=int(ttl_s * 1000)))
 
     def claim_requeue(self, job_id: str, attempt: int, ttl_s: int) -> bool:
         """One reaper wins the re-queue of a given attempt of a job."""

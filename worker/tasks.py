@@ -10,7 +10,7 @@ from celery import Task
 from celery.exceptions import SoftTimeLimitExceeded
 
 from .celery_app import COMPRESS_TASK, app
-from .runner import mark_failed, run_job
+from .runner import failure_of, mark_failed, run_job
 from .settings import get_settings
 from .storage import storage_from_settings
 from .store import JobStore
@@ -31,7 +31,7 @@ class CompressTask(Task):
     @property
     def store(self) -> JobStore:
         if self._store is None:
-            self._store = JobStore.from_url(get_settings().redis_url)
+            self._store = JobStore.from_url(get_settings().redis_url, patient=True)
         return self._store
 
     def on_failure(self, exc, task_id, args, kwargs, einfo) -> None:  # noqa: ANN001 - Celery's signature
@@ -39,9 +39,7 @@ class CompressTask(Task):
         if isinstance(exc, SoftTimeLimitExceeded):
             code, message = "time_limit", f"the job ran past the time limit of {get_settings().soft_time_limit} s"
         else:
-            code = getattr(exc, "code", None)
-            code = code if isinstance(code, str) else "internal_error"
-            message = str(exc) or type(exc).__name__
+            code, message = failure_of(exc)
         if code == "internal_error":
             log.error("job %s failed: %s", job_id, einfo)
         settings = get_settings()

@@ -21,6 +21,7 @@ from worker.storage import storage_from_settings
 from worker.store import JobStore
 
 from ..dashboard.routes import router as dashboard_router
+from .allow import AllowedMethods
 from .errors import install_handlers
 from .metrics import make_registry
 from .routes import events, jobs, ops, presets, results
@@ -69,6 +70,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.celery = make_celery(settings)
     app.state.registry = make_registry(store, settings)
     install_handlers(app)
+    app.add_middleware(AllowedMethods)
     for module in (jobs, presets, events, results, ops):
         app.include_router(module.router)
     app.include_router(dashboard_router)

@@ -1,8 +1,12 @@
 """Safe extraction of an uploaded dataset archive (zip or tar) and a check of what it holds.
 
-Nothing in an archive may write outside the destination or cost more than the limits: absolute paths, ``..``
-components, links and special files are refused, and the entry count and the extracted size are counted while
-extracting (declared sizes are checked first, actual bytes as they are written), so a zip bomb stops at the cap.
+Nothing in an archive may write outside the destination or cost more than the limits. Before anything is written,
+every entry is read from the zip's central directory or the tar's headers: absolute paths, ``..`` components, links
+and special files are refused, entries counted, declared sizes summed against the cap, and the dataset's layout
+found by name. While extracting, the bytes actually written are counted against the same cap (a zip entry whose
+data inflates past its declared size is cut there and fails its CRC). The cap is the smaller of the configured
+limit and ``MAX_RATIO`` times the archive's own size: images, most of any dataset, barely compress, so a bomb is
+refused from its directory having written nothing.
 """
 
 from __future__ import annotations
@@ -20,6 +24,9 @@ from typing import BinaryIO, Literal
 from .errors import ApiError
 
 CHUNK = 1 << 20
+MAX_RATIO = 50  # extracted bytes per archive byte; PNG and JPEG images inflate about 1x, JSON and text about 5x
+RATIO_FLOOR = 8 << 20  # a small archive may extract to this much whatever its ratio
+SPLITS = ("train", "val", "test")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 Layout = Literal["nerf_synthetic", "colmap"]
 _DRIVE = re.compile(r"^[A-Za-z]:")
@@ -62,136 +69,202 @@ def safe_parts(name: str) -> list[str]:
     return parts
 
 
-class _Extractor:
-    """Writes entries under ``dest`` while counting entries and bytes against the limits."""
+@dataclass(frozen=True)
+class Entry:
+    name: str
+    parts: tuple[str, ...]  # safe path components; empty for the archive's top folder
+    is_dir: bool
+    size: int  # declared, in bytes
 
-    def __init__(self, dest: Path, limits: ArchiveLimits) -> None:
-        self.dest, self.limits = dest.resolve(), limits
+
+def _entry(name: str, *, is_dir: bool, is_file: bool, size: int) -> Entry:
+    parts = tuple(safe_parts(name))
+    if not (is_dir or is_file):
+        raise _invalid("unsafe_entry", f"archive entry {name[:80]!r} is a link or a special file")
+    return Entry(name, parts, is_dir, 0 if is_dir else size)
+
+
+class _Budget:
+    """Counts entries and bytes against the limits; ``cap`` is the byte budget of this archive."""
+
+    def __init__(self, limits: ArchiveLimits, cap: int) -> None:
+        self.limits, self.cap = limits, cap
         self.entries = 0
         self.bytes = 0
 
-    def count(self) -> None:
+    def count(self, declared: int) -> None:
         self.entries += 1
         if self.entries > self.limits.max_entries:
             raise _too_large("too_many_entries", f"the archive has more than {self.limits.max_entries} entries")
+        self.add(declared)
 
-    def reserve(self, declared: int) -> None:
-        if self.bytes + declared > self.limits.max_bytes:
+    def add(self, size: int) -> None:
+        self.bytes += size
+        if self.bytes > self.cap:
             raise self.over()
 
     def over(self) -> ApiError:
+        if self.cap < self.limits.max_bytes:
+            return _too_large(
+                "archive_too_large",
+                f"the archive extracts to more than {self.cap} bytes, {MAX_RATIO} times its own size (a dataset's "
+                "images barely compress)",
+            )
         return _too_large("archive_too_large", f"the archive extracts to more than {self.limits.max_bytes} bytes")
 
-    def target(self, name: str) -> Path | None:
-        parts = safe_parts(name)
-        if not parts:
+
+def _zip_entries(zf: zipfile.ZipFile, budget: _Budget) -> list[Entry]:
+    infos = zf.infolist()
+    if len(infos) > budget.limits.max_entries:
+        raise _too_large(
+            "too_many_entries", f"the archive has {len(infos)} entries, above {budget.limits.max_entries}"
+        )
+    entries = []
+    for info in infos:
+        kind = stat.S_IFMT(info.external_attr >> 16)
+        is_dir = info.is_dir() and kind in (0, stat.S_IFDIR)
+        entry = _entry(info.filename, is_dir=is_dir, is_file=not is_dir and kind in (0, stat.S_IFREG),
+                       size=info.file_size)  # fmt: skip
+        if info.flag_bits & 0x1:
+            raise _invalid("bad_archive", f"archive entry {info.filename[:80]!r} is encrypted")
+        budget.count(entry.size)
+        entries.append(entry)
+    return entries
+
+
+def _tar_entries(tf: tarfile.TarFile, budget: _Budget) -> Iterator[tuple[Entry, tarfile.TarInfo]]:
+    # Stream mode reads members in order, without seeking or building the member list first; member sizes in tar
+    # headers are exact, so the budget stops a bomb at the header that would pass the cap.
+    for member in tf:
+        entry = _entry(member.name, is_dir=member.isdir(), is_file=member.isreg(), size=member.size)
+        budget.count(entry.size)
+        yield entry, member
+
+
+def read_entries(archive: Path, limits: ArchiveLimits) -> list[Entry]:
+    """Every entry of a zip or tar, from its directory or headers, checked before anything is written: names,
+    kinds, count and declared sizes."""
+    budget = _Budget(limits, byte_cap(archive, limits))
+    with _Opened(archive) as opened:
+        if isinstance(opened, zipfile.ZipFile):
+            return _zip_entries(opened, budget)
+        return [entry for entry, _ in _tar_entries(opened, budget)]
+
+
+def byte_cap(archive: Path, limits: ArchiveLimits) -> int:
+    """The most an archive may extract to: the configured limit, or ``MAX_RATIO`` times its size if less."""
+    return min(limits.max_bytes, max(RATIO_FLOOR, MAX_RATIO * archive.stat().st_size))
+
+
+class _Opened:
+    """The archive opened as a ZipFile or a streaming TarFile; its errors become 422 ``bad_archive``."""
+
+    def __init__(self, archive: Path) -> None:
+        self.archive = archive
+        self.handle: zipfile.ZipFile | tarfile.TarFile | None = None
+
+    def __enter__(self) -> zipfile.ZipFile | tarfile.TarFile:
+        with open(self.archive, "rb") as f:
+            magic = f.read(4)
+        try:
+            if magic[:2] == b"PK":
+                self.handle = zipfile.ZipFile(self.archive)
+            elif tarfile.is_tarfile(self.archive):
+                self.handle = tarfile.open(self.archive, mode="r|*")
+            else:
+                raise _invalid("bad_archive", "images: not a zip or tar archive")
+        except BaseException as exc:
+            self.__exit__(type(exc), exc, None)
+            raise
+        return self.handle
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, _tb: object) -> None:
+        if self.handle is not None:
+            self.handle.close()
+        if isinstance(exc, (zipfile.BadZipFile, tarfile.TarError, zlib.error, EOFError, NotImplementedError)):
+            raise _invalid("bad_archive", f"images: the archive is damaged ({exc})") from None
+        if isinstance(exc, OSError):  # a gzip/xz stream that is not one, or a file where a folder goes
+            raise _invalid("bad_archive", f"images: cannot extract the archive ({exc.strerror or exc})") from None
+
+
+class _Writer:
+    """Writes entries under ``dest``, counting the bytes actually written against the budget."""
+
+    def __init__(self, dest: Path, budget: _Budget) -> None:
+        self.dest, self.budget = dest.resolve(), budget
+
+    def target(self, entry: Entry) -> Path | None:
+        if not entry.parts:
             return None
-        path = self.dest.joinpath(*parts)
+        path = self.dest.joinpath(*entry.parts)
         if not path.resolve().is_relative_to(self.dest):  # belt and braces: a link planted by an earlier entry
-            raise _invalid("unsafe_entry", f"archive entry {name[:80]!r} leaves the archive folder")
+            raise _invalid("unsafe_entry", f"archive entry {entry.name[:80]!r} leaves the archive folder")
         return path
 
-    def directory(self, name: str) -> None:
-        path = self.target(name)
-        if path is not None:
-            path.mkdir(parents=True, exist_ok=True)
-
-    def file(self, name: str, source: BinaryIO) -> None:
-        path = self.target(name)
+    def write(self, entry: Entry, source: BinaryIO | None) -> None:
+        path = self.target(entry)
         if path is None:
             return
+        if entry.is_dir:
+            path.mkdir(parents=True, exist_ok=True)
+            return
         if path.exists():
-            raise _invalid("duplicate_entry", f"archive entry {name[:80]!r} appears twice")
+            raise _invalid("duplicate_entry", f"archive entry {entry.name[:80]!r} appears twice")
         path.parent.mkdir(parents=True, exist_ok=True)
+        assert source is not None  # regular entries always have data
         with open(path, "xb") as out:
             while chunk := source.read(CHUNK):
-                self.bytes += len(chunk)
-                if self.bytes > self.limits.max_bytes:
-                    raise self.over()
+                self.budget.add(len(chunk))
                 out.write(chunk)
 
 
-def _extract_zip(archive: Path, ex: _Extractor) -> None:
-    with zipfile.ZipFile(archive) as zf:
-        infos = zf.infolist()
-        if len(infos) > ex.limits.max_entries:
-            raise _too_large("too_many_entries", f"the archive has {len(infos)} entries, above {ex.limits.max_entries}")
-        declared = 0
-        for info in infos:
-            safe_parts(info.filename)
-            mode = info.external_attr >> 16
-            if stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
-                raise _invalid("unsafe_entry", f"archive entry {info.filename[:80]!r} is a link or a special file")
-            if info.flag_bits & 0x1:
-                raise _invalid("bad_archive", f"archive entry {info.filename[:80]!r} is encrypted")
-            declared += info.file_size
-        ex.reserve(declared)
-        for info in infos:
-            ex.count()
-            if info.is_dir():
-                ex.directory(info.filename)
-            else:
-                with zf.open(info) as source:
-                    ex.file(info.filename, source)
-
-
-def _extract_tar(archive: Path, ex: _Extractor) -> None:
-    # Stream mode reads members in order without seeking or building the whole member list first.
-    with tarfile.open(archive, mode="r|*") as tf:
-        for member in tf:
-            ex.count()
-            if member.isdir():
-                ex.directory(member.name)
-            elif member.isreg():
-                ex.reserve(member.size)
-                source = tf.extractfile(member)
-                assert source is not None  # regular members always have data
-                ex.file(member.name, source)
-            else:
-                raise _invalid("unsafe_entry", f"archive entry {member.name[:80]!r} is a link or a special file")
+def _write_all(archive: Path, entries: list[Entry], dest: Path, limits: ArchiveLimits) -> int:
+    """Extract ``entries`` (as ``read_entries`` found them) into ``dest``; returns the bytes written."""
+    writer = _Writer(dest, _Budget(limits, byte_cap(archive, limits)))
+    dest.mkdir(parents=True, exist_ok=True)
+    with _Opened(archive) as opened:
+        if isinstance(opened, zipfile.ZipFile):
+            for entry, info in zip(entries, opened.infolist(), strict=True):
+                if entry.is_dir:
+                    writer.write(entry, None)
+                else:
+                    with opened.open(info) as source:
+                        writer.write(entry, source)
+        else:
+            for entry, member in _tar_entries(opened, _Budget(limits, byte_cap(archive, limits))):
+                writer.write(entry, None if entry.is_dir else opened.extractfile(member))
+    return writer.budget.bytes
 
 
 def extract(archive: Path, dest: Path, limits: ArchiveLimits) -> int:
     """Extract a zip or tar (optionally gzip/bzip2/xz compressed) into ``dest``; returns the extracted bytes."""
-    with open(archive, "rb") as f:
-        magic = f.read(4)
-    ex = _Extractor(dest, limits)
-    dest.mkdir(parents=True, exist_ok=True)
-    try:
-        if magic[:2] == b"PK":
-            _extract_zip(archive, ex)
-        elif tarfile.is_tarfile(archive):
-            _extract_tar(archive, ex)
-        else:
-            raise _invalid("bad_archive", "images: not a zip or tar archive")
-    except (zipfile.BadZipFile, tarfile.TarError, zlib.error, EOFError, NotImplementedError) as exc:
-        raise _invalid("bad_archive", f"images: the archive is damaged ({exc})") from None
-    except OSError as exc:  # a gzip/xz stream that is not one, or entries that clash (a file where a folder goes)
-        raise _invalid("bad_archive", f"images: cannot extract the archive ({exc.strerror or exc})") from None
-    return ex.bytes
+    return _write_all(archive, read_entries(archive, limits), dest, limits)
 
 
-def _layout(folder: Path) -> Layout | None:
-    if any((folder / f"transforms_{split}.json").is_file() for split in ("train", "val", "test")):
+def _layout(files: set[tuple[str, ...]], root: tuple[str, ...]) -> Layout | None:
+    if any(root + (f"transforms_{split}.json",) in files for split in SPLITS):
         return "nerf_synthetic"
-    for model in (folder / "sparse" / "0", folder / "sparse"):
-        if any((model / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+    for model in (root + ("sparse", "0"), root + ("sparse",)):
+        if any(model + (f"cameras.{ext}",) in files for ext in ("bin", "txt")):
             return "colmap"
     return None
 
 
-def find_dataset(folder: Path) -> tuple[Layout, Path]:
-    """The dataset folder: ``folder`` itself or, when it holds a single folder (an archive of one directory),
-    that one, up to three levels down."""
-    current = folder
+def find_dataset(entries: list[Entry]) -> tuple[Layout, tuple[str, ...]]:
+    """The dataset folder by the entries' names: the top of the archive or, when that holds a single folder (an
+    archive of one directory), that one, up to three levels down."""
+    files = {e.parts for e in entries if not e.is_dir and e.parts}
+    folders = {parts[:i] for parts in files for i in range(len(parts))} | {e.parts for e in entries if e.is_dir}
+    current: tuple[str, ...] = ()
     for _ in range(4):
-        layout = _layout(current)
+        layout = _layout(files, current)
         if layout is not None:
             return layout, current
-        children = [p for p in current.iterdir() if p.name != "__MACOSX"]
-        if len(children) != 1 or not children[0].is_dir():
+        depth = len(current)
+        children = {p[depth] for p in files | folders if len(p) > depth and p[:depth] == current} - {"__MACOSX"}
+        if len(children) != 1 or current + (next(iter(children)),) not in folders:
             break
-        current = children[0]
+        current += (next(iter(children)),)
     raise _invalid(
         "bad_dataset",
         "images: neither a NeRF-Synthetic dataset (transforms_train.json, ...) nor a COLMAP one "
@@ -232,8 +305,10 @@ def check_images(root: Path, limits: ArchiveLimits) -> int:
 
 
 def extract_dataset(archive: Path, dest: Path, limits: ArchiveLimits) -> Dataset:
-    """Extract, find the dataset folder and check its images; ApiError (413/422) on anything refused."""
-    size = extract(archive, dest, limits)
-    layout, root = find_dataset(dest)
-    images = check_images(root, limits)
-    return Dataset(layout, root.relative_to(dest).as_posix(), images, size)
+    """Check the entries and find the dataset by name, extract, check its images; ApiError (413/422) on anything
+    refused."""
+    entries = read_entries(archive, limits)
+    layout, root = find_dataset(entries)
+    size = _write_all(archive, entries, dest, limits)
+    images = check_images(dest.joinpath(*root), limits)
+    return Dataset(layout, "/".join(root) or ".", images, size)

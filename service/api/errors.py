@@ -7,6 +7,7 @@ import logging
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from redis import RedisError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas import ErrorResponse
@@ -63,6 +64,11 @@ def install_handlers(app: FastAPI) -> None:
             error_body("storage_unavailable", "the artifact storage is not reachable; try again"),
             status_code=503, headers={"Retry-After": "5"},
         )  # fmt: skip
+    @app.exception_handler(RedisError)
+    async def _redis_down(_: Request, exc: RedisError) -> JSONResponse:
+        # Redis holds every job: while it is out of reach nothing can be read or accepted, so say so and when to retry.
+        message = f"the job store is not reachable ({type(exc).__name__}); try again"
+        return JSONResponse(error_body("unavailable", message), status_code=503, headers={"Retry-After": "5"})
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -129,7 +129,10 @@ def _decompress(args: argparse.Namespace) -> int:
     except ArchiveError as exc:
         raise CliError(f"{args.archive}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    fmt.save(scene, args.output, version=args.spz_version)
+    try:
+        fmt.save(scene, args.output, version=args.spz_version)
+    except ValueError as exc:  # a scene the format cannot hold (e.g. positions beyond .spz's fixed point)
+        raise CliError(f"{args.output}: {exc}") from exc
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0

@@ -154,6 +154,9 @@ def submit(args: argparse.Namespace) -> int:
             return 0
         finals = follow(client, jobs, console)
         console.print(jobs_table([(jobs[i], finals[i]) for i in jobs]))
+        for job_id, job in finals.items():
+            if job.error is not None:  # in full: the table cuts long messages
+                console.print(f"{jobs[job_id]}: {job.state}: {job.error.code}: {job.error.message}", soft_wrap=True)
         if args.output is not None:
             for job_id, label in jobs.items():
                 if finals[job_id].state == "succeeded":

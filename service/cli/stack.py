@@ -135,7 +135,8 @@ class LocalStack:
     ``env`` holds extra settings for every process (``SYMGS_*`` limits, lease length, ``AWS_*`` for s3:// storage,
     ...). Without ``SYMGS_API_KEYS`` (or ``SYMGS_AUTH=none``) the API gets a generated key: ``api_key``.
     Redis and the API listen on ``bind`` and are reached at ``host``; ``wrap`` prefixes their command lines (to run
-    them in another network namespace, say)."""
+    them in another network namespace, say). With ``durable_redis`` Redis logs every write to its append-only file
+    before answering, so a restart, even after SIGKILL, comes back with every job and queued message."""
 
     env: dict[str, str] = field(default_factory=dict)
     storage: str = ""
@@ -143,6 +144,7 @@ class LocalStack:
     host: str = ""
     wrap: list[str] = field(default_factory=list)
     redis_binary: str = ""  # "" = redis-server from PATH, else the embedded one
+    durable_redis: bool = False
     root: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="symgs-stack-")))
     children: list[Child] = field(default_factory=list)
     workers: list[Child] = field(default_factory=list)
@@ -178,19 +180,31 @@ class LocalStack:
         return child
 
     def start_redis(self, timeout: float = 20) -> None:
+        """Start Redis: on a free port the first time, on the same port again after ``stop_redis``."""
         binary = self.redis_binary = self.redis_binary or redis_server()
-        port = free_port()
+        port = int(self.redis_url.rsplit(":", 1)[1].split("/")[0]) if self.redis_url else free_port()
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)
-        argv = [binary, "--port", str(port), "--bind", self.bind, "--dir", str(data), "--save", "",
-                "--appendonly", "no", "--loglevel", "warning"]  # fmt: skip
+        aof = ["--appendonly", "yes", "--appendfsync", "always"] if self.durable_redis else ["--appendonly", "no"]
+        argv = [binary, "--port", str(port), "--bind", self.bind, "--dir", str(data), "--save", "", *aof,
+                "--loglevel", "warning"]  # fmt: skip
         if not self.bind.startswith("127."):
             argv += ["--protected-mode", "no"]  # reached from other hosts of a private test network
-        child = self.spawn("redis", argv, env=os.environ.copy(), wrap=self.wrap)
+        child = spawn("redis", argv, env=os.environ.copy(), logs=self.root, wrap=self.wrap)
+        self.children.insert(0, child)  # stopped last
         self.redis_url = f"redis://{self.host}:{port}/0"
         client = redis.Redis.from_url(self.redis_url)
         wait_until(child, client.ping, timeout, "answer PING")
         client.close()
+
+    def stop_redis(self, *, kill: bool = False) -> None:
+        """Stop Redis (SIGKILL with ``kill``: a crash); ``start_redis`` brings it back on the same port."""
+        for child in [c for c in self.children if c.name == "redis"]:
+            if kill:
+                child.kill()
+            else:
+                child.stop(timeout=10)
+            self.children.remove(child)
 
     def start_api(self, timeout: float = 30, *, env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
         port = free_port()

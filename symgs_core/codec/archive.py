@@ -29,7 +29,7 @@ from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
 from .errors import ArchiveError
 from .registry import SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
-from .section import SectionCodec
+from .section import MAX_MAGNITUDE, SectionCodec
 
 _HEADER_KEYS = {"count", "sh_degree", "coordinate_convention", "codec", "planes", "sections", "meta"}
 _SECTION_KEYS = {"name", "codec", "offset", "length", "raw_length", "crc32", "params"}
@@ -89,6 +89,11 @@ def _plain_json(meta: dict[str, Any]) -> None:
         raise ValueError("meta must be plain JSON: dict, list, str, int, float, bool, None (tuples become lists)")
 
 
+def _in_range(values: np.ndarray) -> np.ndarray:
+    """Where ``values`` are finite and within +-MAX_MAGNITUDE (what an archive may hold)."""
+    return np.isfinite(values) & (np.abs(values) <= MAX_MAGNITUDE)
+
+
 def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lossless") -> bytes:
     """The `.symgs` bytes of ``contents``, each section written by ``codec`` (an ``ArchiveCodec``, or the name of
     one registered in ``registry``)."""
@@ -96,6 +101,12 @@ def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lo
     codecs = writer.sections
     _plain_json(contents.meta)
     arrays = _section_arrays(contents)
+    for name, values in arrays.items():
+        if values.dtype != np.bool_ and not _in_range(values).all():
+            raise ValueError(f"{name}: attributes must be finite and within +-{MAX_MAGNITUDE:g} to be archived")
+    offsets = np.array([p.offset for p in contents.planes], dtype=np.float64)
+    if not _in_range(offsets).all():
+        raise ValueError(f"plane offsets must be within +-{MAX_MAGNITUDE:g}, got {offsets.tolist()}")
     table, payloads, offset = [], [], 0
     for name in SECTION_NAMES:
         coded = codecs[name].encode(arrays[name])
@@ -174,6 +185,8 @@ def _planes(value: Any, limits: DecodeLimits) -> list[Plane]:
             raise _bad(f"plane {i}: normal must be a list of 3 numbers, got {normal!r:.80}")
         n = tuple(_number(c, f"plane {i} normal") for c in normal)
         offset = _number(entry["offset"], f"plane {i} offset")
+        if abs(offset) > MAX_MAGNITUDE:
+            raise _bad(f"plane {i}: offset {offset:g} lies beyond +-{MAX_MAGNITUDE:g}")
         try:
             planes.append(Plane((n[0], n[1], n[2]), offset))
         except ValueError as exc:
@@ -292,6 +305,11 @@ def _decode_section(data: bytes, s: _Section) -> np.ndarray:
             "corrupt_section",
             f"section {s.name!r} decoded to {values.dtype} {values.shape}, expected {np.dtype(want)} {s.shape}",
         )
+    if want == np.float32:
+        bad = values.size - int(np.count_nonzero(_in_range(values)))
+        if bad:
+            beyond = f"not finite or beyond +-{MAX_MAGNITUDE:g}"
+            raise ArchiveError("corrupt_section", f"section {s.name!r} decodes to {bad} values {beyond}")
     return values
 
 

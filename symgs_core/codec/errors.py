@@ -21,6 +21,9 @@ class ArchiveError(ValueError):
     """A `.symgs` file that cannot be read; ``code`` says why (see ``ArchiveErrorCode``)."""
 
     def __init__(self, code: ArchiveErrorCode, message: str) -> None:
-        super().__init__(f"{code}: {message}")
+        super().__init__(code, message)  # both, so a pickled copy (Celery's failure hook) keeps the code
         self.code: ArchiveErrorCode = code
         self.message = message
+
+    def __str__(self) -> str:
+        return f"{self.code}: {self.message}"

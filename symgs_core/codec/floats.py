@@ -54,8 +54,8 @@ def _restore(raw: bytes, n: int, c: int, dtype: np.dtype, layout: str) -> np.nda
 class FloatZstd:
     """Float attribute values at ``dtype`` precision + zstd in the best of ``LAYOUTS``.
 
-    float32 is bit-exact (NaN payloads and signed zeros included); float16 rounds and refuses values it would turn
-    into infinities. ``level`` only affects encoding.
+    float32 is bit-exact (signed zeros and subnormals included); float16 rounds and refuses values it would turn
+    into infinities. ``level`` only affects encoding. The archive admits finite values only (``MAX_MAGNITUDE``).
     """
 
     dtype: Literal["float32", "float16"]

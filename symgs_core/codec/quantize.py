@@ -35,7 +35,7 @@ from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
 from .morton import decode_codes, deinterleave, encode_codes, fits, interleave
-from .section import EncodedSection, SectionKind, join_parts, split_parts
+from .section import MAX_MAGNITUDE, EncodedSection, SectionKind, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
@@ -53,10 +53,18 @@ def _number(params: dict[str, Any], key: str, codec: str) -> float:
 
 
 def _step(params: dict[str, Any], codec: str) -> float:
+    """A positive step whose grid of MAX_LEVELS cells stays within +-MAX_MAGNITUDE."""
     step = _number(params, "step", codec)
-    if not 0 < step:
-        raise ArchiveError("bad_header", f"{codec}: step {step} must be positive")
+    if not 0 < step <= MAX_MAGNITUDE / MAX_LEVELS:
+        raise ArchiveError("bad_header", f"{codec}: step {step:g} must lie in (0, {MAX_MAGNITUDE / MAX_LEVELS:g}]")
     return step
+
+
+def _origin(value: Any, codec: str) -> float:
+    origin = _number({"origin": value}, "origin", codec)
+    if abs(origin) > MAX_MAGNITUDE:
+        raise ArchiveError("bad_header", f"{codec}: origin {origin:g} lies beyond +-{MAX_MAGNITUDE:g}")
+    return origin
 
 
 def _keys(params: dict[str, Any], keys: set[str], codec: str) -> None:
@@ -260,8 +268,8 @@ class PositionCodec:
         origin = params["origin"]
         if not isinstance(origin, list) or len(origin) != 3:
             raise ArchiveError("bad_header", f"{self.name}: origin must be 3 numbers, got {origin!r:.60}")
-        for i in range(3):
-            _number({"origin": origin[i]}, "origin", self.name)
+        for value in origin:
+            _origin(value, self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
@@ -330,7 +338,7 @@ class ScalarGridCodec:
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step"}, self.name)
         _step(params, self.name)
-        _number(params, "origin", self.name)
+        _origin(params.get("origin"), self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
@@ -384,7 +392,7 @@ class ShDcCodec:
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step", "decorrelate"}, self.name)
         _step(params, self.name)
-        _number(params, "origin", self.name)
+        _origin(params.get("origin"), self.name)
         _flag(params, "decorrelate", self.name)
         _check_raw(self.name, shape, raw_length)
 

@@ -19,6 +19,10 @@ import zstandard
 from .errors import ArchiveError
 
 SectionKind = Literal["float32", "bool"]
+# Every attribute value an archive holds, and every plane offset, lies within +-MAX_MAGNITUDE: then float32 sums and
+# products of a few of them stay finite (reflections through every level, grid origins plus steps), so a decoded
+# scene is always finite. Writers refuse anything beyond, and readers refuse archives that decode beyond it.
+MAX_MAGNITUDE = 1e30
 
 
 @dataclass(frozen=True)

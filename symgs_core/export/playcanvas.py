@@ -86,7 +86,7 @@ def write_compressed_ply(scene: GaussianScene) -> bytes:
         packed = (rotation << np.uint32(10)) | _unorm(q[:, i] * (np.sqrt(2.0) * 0.5) + 0.5, 10)
         rotation = np.where(largest == i, rotation, packed)
     c = _normalize(colors, cmin, cmax)
-    alpha = 1.0 / (1.0 + np.exp(-t["opacities"]))
+    alpha = 0.5 + 0.5 * np.tanh(0.5 * t["opacities"])  # the sigmoid, without overflow for huge logits
     color = (_unorm(c[:, 0], 8) << 24) | (_unorm(c[:, 1], 8) << 16) | (_unorm(c[:, 2], 8) << 8) | _unorm(alpha, 8)
     vertex = np.stack(
         [pack111011(_normalize(means, pmin, pmax)), rotation, pack111011(_normalize(scales, smin, smax)), color], axis=1

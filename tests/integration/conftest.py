@@ -116,3 +116,17 @@ def done_job(stack: LocalStack, scene_path: Path) -> dict:
         assert response.headers["location"] == f"/v1/jobs/{job['id']}"
         assert response.headers["retry-after"] == "2"
         return wait_for(api, job["id"], finished, timeout=300)
+
+
+@pytest.fixture(scope="session")
+def small_ply(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A 20-Gaussian scene: the header edits of the upload tests rely on its vertex count."""
+    import torch
+
+    from symgs_core.ply import save_scene
+    from symgs_core.synthetic import synthetic_scene
+
+    path = tmp_path_factory.mktemp("small") / "small.ply"
+    scene = synthetic_scene("global", n=400, seed=5, sh_degree=1).scene
+    save_scene(scene.select(torch.arange(20)), path)
+    return path.read_bytes()

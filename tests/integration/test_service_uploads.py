@@ -90,6 +90,14 @@ def _rest_header(ply: bytes, count: int) -> bytes:
     return b"\n".join(lines[:at] + rest + lines[at:]) + ply[end:]
 
 
+def _faces_first(ply: bytes, count: int) -> bytes:
+    """A face element before the vertices: a list element, counted at its smallest size (an empty list each)."""
+    return _header_swap(
+        ply, b"element vertex 20", f"element face {count}\nproperty list uchar int vertex_indices\n".encode()
+        + b"element vertex 20",
+    )  # fmt: skip
+
+
 CASES = {
     # name: (build(ply) -> (scene, images, params), status, code)
     "not a ply": (lambda ply: (b"solid cube\nfacet normal 0 0 1\n", None, None), 422, "not_ply"),
@@ -99,6 +107,10 @@ CASES = {
                         422, "missing_property"),  # fmt: skip
     "header claims more Gaussians than the file holds": (
         lambda ply: (_header_swap(ply, b"element vertex 20", b"element vertex 40"), None, None), 422, "truncated"),
+    "a list element claiming 1e12 entries": (lambda ply: (_faces_first(ply, 10**12), None, None), 422, "truncated"),
+    "header declares fewer Gaussians than the file holds": (
+        lambda ply: (_header_swap(ply, b"element vertex 20", b"element vertex 19"), None, None), 422, "trailing_data"),
+    "bytes after the last Gaussian": (lambda ply: (ply + bytes(16), None, None), 422, "trailing_data"),
     "too many Gaussians": (
         lambda ply: (_header_swap(ply, b"element vertex 20", b"element vertex 99999"), None, None),
         413, "too_many_gaussians"),  # fmt: skip
@@ -164,17 +176,3 @@ def test_service_stays_healthy_and_accepts_a_dataset(
     after = _post(api_a, scene_path.read_bytes(), params=json.dumps(TINY))
     assert after.status_code == 202, after.text
     assert wait_for(api_a, after.json()["id"], finished)["state"] == "succeeded"
-
-
-@pytest.fixture(scope="module")
-def small_ply(tmp_path_factory: pytest.TempPathFactory) -> bytes:
-    """A 20-Gaussian scene: header edits above rely on its vertex count."""
-    import torch
-
-    from symgs_core.ply import save_scene
-    from symgs_core.synthetic import synthetic_scene
-
-    path = tmp_path_factory.mktemp("small") / "small.ply"
-    scene = synthetic_scene("global", n=400, seed=5, sh_degree=1).scene
-    save_scene(scene.select(torch.arange(20)), path)
-    return path.read_bytes()

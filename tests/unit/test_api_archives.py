@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import struct
 import tarfile
 import zipfile
 from pathlib import Path
@@ -108,6 +109,71 @@ def test_zip_bomb_with_lying_sizes_stops_at_the_cap(tmp_path: Path) -> None:
     error = _error(lambda: extract(archive, tmp_path / "out", LIMITS))
     assert (error.status, error.code) == (422, "bad_archive")
     assert sum(f.stat().st_size for f in (tmp_path / "out").rglob("*") if f.is_file()) <= 1024
+
+
+GENEROUS = ArchiveLimits(max_entries=20_000, max_bytes=8 << 30, max_images=2000, max_image_pixels=4096 * 4096)
+
+
+def _written(folder: Path) -> int:
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) if folder.exists() else 0
+
+
+@pytest.mark.parametrize("layout", [NERF, {"notes.txt": b"no dataset here"}])
+def test_zip_bomb_under_the_configured_cap_is_refused_from_its_directory(tmp_path: Path, layout: dict) -> None:
+    """64 MiB of zeros in a 65 kB zip, far below the default cap of 8 GiB: refused before a byte is written."""
+    archive = _write_zip(tmp_path / "bomb.zip", {**layout, "scene/zeros.bin": bytes(64 << 20)})
+    assert archive.stat().st_size < 100_000
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (413, "archive_too_large"), error.message
+    assert "times its own size" in error.message
+    assert _written(tmp_path / "out") == 0
+
+
+def _overlapping_bomb(path: Path, copies: int) -> Path:
+    """A zip whose central directory lists ``copies`` entries that all point at one compressed blob of 4 MiB of
+    zeros (a non-recursive bomb: the archive stays small however many copies it lists)."""
+    data = _write_zip(path, {"k": bytes(4 << 20)}).read_bytes()
+    end = data.rindex(b"PK\x05\x06")
+    start = struct.unpack_from("<I", data, end + 16)[0]
+    record = data[start:end]
+    name_length = struct.unpack_from("<H", record, 28)[0]
+    names = [f"scene/z{i}.bin".encode() for i in range(copies)]
+    directory = b"".join(record[:28] + struct.pack("<H", len(n)) + record[30:46] + n + record[46 + name_length :]
+                         for n in names)  # fmt: skip
+    trailer = data[end : end + 8] + struct.pack("<HHII", copies, copies, len(directory), start) + data[end + 20 :]
+    path.write_bytes(data[:start] + directory + trailer)
+    return path
+
+
+def test_overlapping_zip_entries_are_summed_from_the_directory(tmp_path: Path) -> None:
+    bomb = _overlapping_bomb(tmp_path / "many.zip", 100)
+    with zipfile.ZipFile(bomb) as zf:
+        assert sum(i.file_size for i in zf.infolist()) == 100 * (4 << 20) and bomb.stat().st_size < 20_000
+    error = _error(lambda: extract_dataset(bomb, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (413, "archive_too_large")
+    assert _written(tmp_path / "out") == 0
+
+
+def test_layout_is_checked_before_extracting(tmp_path: Path) -> None:
+    archive = _write_zip(tmp_path / "a.zip", {"photos/a.png": _png(), "photos/b.png": _png()})
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (422, "bad_dataset")
+    assert not (tmp_path / "out").exists()
+
+
+def test_tar_bomb_stops_at_its_header(tmp_path: Path) -> None:
+    bomb = tmp_path / "bomb.tar.gz"
+    with tarfile.open(bomb, "w:gz") as tf:
+        for name, data in NERF.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+        info = tarfile.TarInfo("scene/zeros")
+        info.size = 64 << 20
+        tf.addfile(info, io.BytesIO(bytes(info.size)))
+    error = _error(lambda: extract_dataset(bomb, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (413, "archive_too_large")
+    assert _written(tmp_path / "out") == 0
 
 
 @pytest.mark.parametrize("kind", [tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.CHRTYPE, tarfile.FIFOTYPE])

@@ -44,6 +44,22 @@ def test_bad_params_are_named(text: str, where: str) -> None:
     assert where in caught.value.message
 
 
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("{", "params: Invalid JSON"), ("[]", "params: Input should be an object"),
+        ('{"psnr_budget": NaN}', "params: psnr_budget: Input should be a finite number"),
+        ('{"psnr_budget": "nan"}', "params: psnr_budget: Input should be a finite number"),
+        ('{"psnr_budget": 1e999}', "params: psnr_budget: Input should be a finite number"),
+    ],
+)
+def test_params_errors_read_plainly(text: str, message: str) -> None:
+    with pytest.raises(ApiError) as caught:
+        parse_params(text)
+    assert caught.value.message.startswith(message), caught.value.message
+    assert "params: params" not in caught.value.message
+
+
 def test_missing_params_mean_defaults() -> None:
     assert parse_params(None) == parse_params("{}") == JobParams()
 

@@ -47,11 +47,12 @@ from symgs_core.codec.masks import MASKS
 from symgs_core.mirror import Plane, expand, expand_planes
 from symgs_core.scene import SH_REST_COUNT, GaussianScene
 
-SPECIAL = torch.tensor([0x80000000, 0x00000001, 0x7F800000, 0xFF800000, 0x7FC00001, 0x7F7FFFFF], dtype=torch.int64)
+# -0.0, the smallest subnormal, and the largest float32 magnitudes an archive holds (just below 1e30).
+SPECIAL = torch.tensor([0x80000000, 0x00000001, 0x7149F2C9, 0xF149F2C9], dtype=torch.int64)
 
 
 def random_contents(n: int, sh_degree: int, levels: int, seed: int = 0, special: bool = True) -> ArchiveContents:
-    """Random stored set with signed zeros, subnormals, infinities and a NaN payload sprinkled in when ``special``."""
+    """Random stored set with signed zeros, subnormals and the largest magnitudes sprinkled in when ``special``."""
     g = torch.Generator().manual_seed(seed)
 
     def attr(*shape: int) -> torch.Tensor:

@@ -15,12 +15,23 @@ from datetime import timedelta
 from typing import Any
 
 import pytest
+import torch
 import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from symgs_core.codec import MAGIC, ArchiveError, DecodeLimits, decode_archive, encode_archive
+from symgs_core.codec import (
+    MAGIC,
+    ArchiveContents,
+    ArchiveError,
+    DecodeLimits,
+    decode_archive,
+    encode_archive,
+    expand_archive,
+)
+from symgs_core.codec.floats import FLOAT32
 from symgs_core.codec.masks import write_varints
+from symgs_core.mirror import Plane
 from tests.unit.test_archive import random_contents
 
 QUICK = settings(max_examples=200, deadline=timedelta(seconds=2), suppress_health_check=[HealthCheck.too_slow])
@@ -165,10 +176,22 @@ HOSTILE_VALUES = st.one_of(
 )
 
 
+QUANTIZED = encode_archive(random_contents(40, 2, 2, seed=5, special=False), codec="quantized")
+
+
+def assert_finite(contents: ArchiveContents) -> None:
+    """What every accepted archive decodes to: finite values, before and after expansion through the levels."""
+    for scene in (contents.stored, expand_archive(contents)):
+        for name, value in scene.tensors().items():
+            assert torch.isfinite(value).all(), name
+
+
 @QUICK
-@given(st.data())
-def test_any_header_field_replaced_by_a_hostile_value_is_refused_or_harmless(data: st.DataObject) -> None:
-    header, body = split(DATA)
+@given(st.data(), st.sampled_from([DATA, QUANTIZED]))
+def test_any_header_field_replaced_by_a_hostile_value_is_refused_or_harmless(
+    data: st.DataObject, archive: bytes
+) -> None:
+    header, body = split(archive)
     path = data.draw(st.sampled_from([p for p in _leaves(header) if p]))
     value = data.draw(HOSTILE_VALUES)
     hostile = copy.deepcopy(header)
@@ -183,8 +206,11 @@ def test_any_header_field_replaced_by_a_hostile_value_is_refused_or_harmless(dat
         return
     # Accepted only where any value of the right type is legitimate, or where nothing changed.
     free = path[0] in ("meta", "codec") or path[-1] == "layout" or (path[0] == "planes" and path[-1] == "offset")
+    # Quantiser parameters may take other values, as long as what they decode to is finite.
+    free = free or (path[0] == "sections" and "params" in path and path[-1] != "morton")
     assert free or value == original, (path, value)
     assert back.meta == hostile["meta"]
+    assert_finite(back)
 
 
 def _set(path: tuple, value: Any) -> Callable[[dict], None]:
@@ -302,6 +328,50 @@ def test_expansion_beyond_the_limit_is_refused_before_expanding() -> None:
     data = encode_archive(contents)
     assert len(data) < 8192
     assert code_of(data) == "limit_exceeded"
+
+
+def _params(name: str, **changes: Any) -> bytes:
+    header, body = split(QUANTIZED)
+    next(s for s in header["sections"] if s["name"] == name)["params"].update(changes)
+    return reframe(header, body)
+
+
+@pytest.mark.parametrize(
+    "archive",
+    [
+        _params("means", step=1e300), _params("means", step=-1.0), _params("means", origin=[0.0, 1e35, 0.0]),
+        _params("scales", step=1e25), _params("scales", origin=-1e31), _params("sh_dc", step=float("inf")),
+        _params("sh_rest", steps=[1e-3, 1e26]), _params("quats", step=0.0),
+    ],
+    ids=["huge position step", "negative step", "origin beyond 1e30", "scale grid beyond 1e30", "scale origin",
+         "infinite DC step", "huge SH band step", "zero rotation step"],
+)  # fmt: skip
+def test_quantiser_parameters_that_would_decode_beyond_range_are_refused(archive: bytes) -> None:
+    assert code_of(archive) == "bad_header"
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf"), 1e35, -3e38])
+def test_float_sections_that_decode_to_non_finite_or_absurd_values_are_refused(value: float) -> None:
+    contents = random_contents(5, 1, 2, seed=11, special=False)
+    means = contents.stored.means.numpy().copy()
+    means[3, 1] = value
+    coded = FLOAT32.encode(means)
+    header, body = split(with_payload(DATA, "means", coded.payload, coded.raw_length))
+    header["sections"][0]["params"] = coded.params
+    assert code_of(reframe(header, body)) == "corrupt_section"
+    stored = contents.stored.with_(means=torch.from_numpy(means))
+    with pytest.raises(ValueError, match="finite and within"):
+        encode_archive(ArchiveContents(stored, contents.planes, contents.bits))
+
+
+def test_plane_offsets_beyond_range_are_refused() -> None:
+    header, body = split(DATA)
+    header["planes"][0]["offset"] = 2e30
+    assert code_of(reframe(header, body)) == "bad_header"
+    contents = random_contents(5, 1, 2, seed=11, special=False)
+    far = [contents.planes[0], Plane(contents.planes[1].normal, -2e30)]
+    with pytest.raises(ValueError, match="plane offsets"):
+        encode_archive(ArchiveContents(contents.stored, far, contents.bits))
 
 
 def _zstd(raw: bytes, **kwargs: Any) -> bytes:

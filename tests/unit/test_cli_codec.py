@@ -7,10 +7,12 @@ import json
 import pytest
 
 from service.cli import main
+from symgs_core.export.formats import EXPORTS
 from symgs_core.ply import load_scene, save_scene
 from symgs_core.synthetic import synthetic_scene
 
-FAST = ["--iterations", "5", "--resolution", "48", "--train-views", "4", "--eval-views", "2", "--quiet"]
+FAST = ["--iterations", "5", "--resolution", "48", "--eval-resolution", "48", "--train-views", "4", "--fit-views", "2",
+        "--eval-views", "2", "--quiet"]
 
 
 @pytest.fixture(scope="module")
@@ -51,3 +53,26 @@ def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
     assert main(["compress", str(not_ply), "-o", str(tmp_path / "n.symgs"), *FAST]) == 2
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
+
+
+def _bad_archives(scene_file) -> dict[str, bytes]:  # noqa: ANN001
+    from symgs_core.codec import encode_archive
+    from tests.unit.test_archive import random_contents
+    from tests.unit.test_archive_hostile import reframe, split
+
+    good = encode_archive(random_contents(30, 1, 1, seed=4, special=False), codec="quantized")
+    header, body = split(good)
+    header["sections"][0]["params"]["step"] = 1e300  # decoded positions would be infinite
+    return {"truncated": good[:-9], "empty": b"", "a PLY": scene_file.read_bytes()[:4096],
+            "absurd position step": reframe(header, body)}  # fmt: skip
+
+
+@pytest.mark.parametrize("extension", [fmt.extension for fmt in EXPORTS])
+def test_bad_archives_give_one_line_and_exit_2_for_every_format(scene_file, tmp_path, capsys, extension):  # noqa: ANN001
+    for name, data in _bad_archives(scene_file).items():
+        archive, output = tmp_path / "bad.symgs", tmp_path / f"out{extension}"
+        archive.write_bytes(data)
+        assert main(["decompress", str(archive), "-o", str(output)]) == 2, name
+        captured = capsys.readouterr()
+        assert captured.out == "" and len(captured.err.strip().splitlines()) == 1, (name, captured.err)
+        assert captured.err.startswith("symgs decompress: error: ") and not output.exists(), name

@@ -71,15 +71,36 @@ def test_spz_layout_v3_is_one_gzip_stream_in_rub_axes_v4_a_plain_header() -> Non
     scene = scene_for_export(n=3, degree=0)
     body = gzip.decompress(write_spz(scene, version=3))
     magic, version, n, degree, frac, flags, _ = struct.unpack_from("<IIIBBBB", body)
-    assert (magic, version, n, degree, frac, flags) == (0x5053474E, 3, 3, 0, 12, 0)
+    assert (magic, version, n, degree, flags) == (0x5053474E, 3, 3, 0, 0)
+    extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
+    assert frac == 18 - math.floor(math.log2(extent))  # a step of at most 2^-18 of the extent
     fixed = np.frombuffer(body[16 : 16 + 9], dtype=np.uint8).reshape(3, 3).astype(np.int64)
     value = fixed[:, 0] | fixed[:, 1] << 8 | fixed[:, 2] << 16
-    value = np.where(value & 0x800000, value - (1 << 24), value) / 4096.0
+    value = np.where(value & 0x800000, value - (1 << 24), value) / (1 << frac)
     expected = scene.means[0].numpy() * np.array([1, -1, -1])  # RUB: y and z flipped
-    assert np.allclose(value, expected, atol=0.5 / 4096 + 1e-7)
+    assert np.allclose(value, expected, atol=0.5 / (1 << frac) + 1e-7)
     v4 = write_spz(scene, version=4)
     assert v4[:4] == b"NGSP" and struct.unpack_from("<I", v4, 4)[0] == 4
     assert struct.unpack_from("<B", v4, 15)[0] == 5  # five non-empty streams: no SH at degree 0
+
+
+@pytest.mark.parametrize("spread, bits", [(0.1, 21), (0.5, 19), (3.0, 16), (300.0, 12), (5000.0, 10)])
+def test_spz_position_step_follows_the_scene_size(spread: float, bits: int) -> None:
+    """A step of at most 2^-18 of the extent (the donut is about 0.2 across), never coarser than the reference
+    writer's 2^-12 unless the scene's reach needs the integer bits."""
+    scene = scene_for_export(n=200, degree=0, spread=spread)
+    body = gzip.decompress(write_spz(scene, version=3))
+    assert body[13] == bits
+    error = (read_spz(write_spz(scene)).means - scene.means).abs().max()
+    assert error <= 0.5 / (1 << bits) + 4 * spread * 2**-24  # the step, and float32 rounding at the reach
+
+
+def test_spz_keeps_sh_at_8_bits() -> None:
+    scene = scene_for_export(n=300, degree=3, seed=4)
+    back = read_spz(write_spz(scene))
+    assert (back.sh_rest - scene.sh_rest).abs().max() <= 0.5 / 128 + 1e-6
+    coarse = read_spz(write_spz(scene, sh1_bits=5, sh_rest_bits=4))  # the reference tool's choice
+    assert (coarse.sh_rest[:, 3:] - scene.sh_rest[:, 3:]).abs().max() > 4 / 128
 
 
 def test_spz_gives_large_scenes_fewer_fractional_bits_instead_of_wrapping() -> None:

@@ -31,9 +31,11 @@ def assert_same_scene(theirs, ours, atol: float = 1e-5) -> None:  # noqa: ANN001
         assert torch.allclose(other, value, atol=atol, rtol=1e-5), name
 
 
-@pytest.mark.parametrize("version", [3, 4])
-def test_splat_transform_decodes_our_spz_as_our_reader_does(splat_transform: str, tmp_path: Path, version: int) -> None:
-    scene = scene_for_export(n=700, degree=3, seed=version)
+@pytest.mark.parametrize("version, spread", [(3, 3.0), (4, 3.0), (3, 0.1)])  # 0.1: 21 fractional bits
+def test_splat_transform_decodes_our_spz_as_our_reader_does(
+    splat_transform: str, tmp_path: Path, version: int, spread: float
+) -> None:
+    scene = scene_for_export(n=700, degree=3, seed=version, spread=spread)
     (tmp_path / "ours.spz").write_bytes(write_spz(scene, version=version))
     convert(splat_transform, tmp_path / "ours.spz", tmp_path / "theirs.ply")
     theirs = load_scene(tmp_path / "theirs.ply")

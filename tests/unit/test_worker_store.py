@@ -13,7 +13,7 @@ import pytest
 from api_schemas import JobParams
 from service.cli.stack import LocalStack, embedded_redis_server
 from worker.celery_app import make_celery
-from worker.maintenance import SweepReport, expire, recover_lost, reroute_stranded
+from worker.maintenance import SweepReport, expire, recover_dropped, recover_lost, reroute_stranded
 from worker.runner import headline, mark_failed
 from worker.settings import Settings
 from worker.storage import DirectoryStorage
@@ -87,12 +87,12 @@ def test_listing_pages_and_filters(store: JobStore) -> None:
 
 
 def test_idempotency_is_per_owner(store: JobStore) -> None:
-    assert store.claim_idempotency("o1", "k", "a" * 32, 60) is None
-    assert store.claim_idempotency("o1", "k", "b" * 32, 60) == "a" * 32
-    assert store.claim_idempotency("o2", "k", "c" * 32, 60) is None
-    assert store.idempotent_job("o1", "k") == "a" * 32
+    assert store.claim_idempotency("o1", "k", "a" * 32, "f1", 60) is None
+    assert store.claim_idempotency("o1", "k", "b" * 32, "f2", 60) == ("a" * 32, "f1")
+    assert store.claim_idempotency("o2", "k", "c" * 32, "f1", 60) is None
+    assert store.idempotent_job("o1", "k") == ("a" * 32, "f1")
     store.forget_idempotency("o1", "k")
-    assert store.idempotent_job("o1", "k") is None and store.claim_idempotency("o1", "k", "d" * 32, 60) is None
+    assert store.idempotent_job("o1", "k") is None and store.claim_idempotency("o1", "k", "d" * 32, "f", 60) is None
     assert owner_of(None) == "anonymous" and owner_of("key") != owner_of("key2") and "key" not in owner_of("key")
 
 
@@ -138,6 +138,30 @@ def test_lost_jobs_are_requeued_then_failed(store: JobStore, redis_url: str, tmp
     assert final.failed == [lost.id]
     failed = store.get(lost.id)
     assert (failed.state, failed.error_code) == ("failed", "worker_lost")
+
+
+def test_queued_jobs_whose_message_is_gone_are_sent_again(store: JobStore, redis_url: str, tmp_path: Path) -> None:
+    """A worker took the job's message, then Redis restarted under it before the job started: the message is gone
+    with the failed task (or parked with the broker for hours), and the job must not wait in 'queued' forever."""
+    settings = _settings(redis_url, tmp_path)  # leases of 1 s
+    celery = make_celery(settings)
+    dropped, taken, fresh = _job(1), _job(2), _job(3)
+    for record in (dropped, taken):
+        store.create(record)
+    store.acquire_lease(taken.id, "w2", 30)  # a worker is starting it
+    time.sleep(1.1)
+    store.create(fresh)  # queued less than a lease ago: its message may still be on its way
+
+    report = SweepReport()
+    recover_dropped(store, celery, settings, report)
+    assert report.requeued == [dropped.id] and store.r.llen("cpu") == 1
+    again = SweepReport()
+    recover_dropped(store, celery, settings, again)
+    assert again == SweepReport()  # its message waits in the queue now; and once per lease at most
+    store.r.delete("cpu")
+    time.sleep(1.1)
+    recover_dropped(store, celery, settings, again)
+    assert sorted(again.requeued) == sorted([dropped.id, fresh.id])
 
 
 def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, redis_url: str, tmp_path: Path) -> None:

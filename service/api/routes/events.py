@@ -67,7 +67,7 @@ async def job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterato
                 }
             },
         },
-        **error_responses(401, 404, 422),
+        **error_responses(401, 404, 422, 503),
     },
 )
 def get_events(

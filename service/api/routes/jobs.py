@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import JSONResponse
+from starlette.convertors import StringConvertor, register_url_convertor
 
 from api_schemas import Job, JobPage, JobState
 from worker.settings import Settings
@@ -17,6 +18,15 @@ from ..job_view import job_headers, owned_record, public_job
 from ..submission import submit
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+
+class JobIdConvertor(StringConvertor):
+    """A job id in a path: no ':' (so ``/v1/jobs/{id}:cancel`` is never read as the job ``{id}:cancel``)."""
+
+    regex = "[^/:]+"
+
+
+register_url_convertor("job_id", JobIdConvertor())
 
 _MULTIPART = {
     "requestBody": {
@@ -85,7 +95,7 @@ async def create_job(
     response_model=JobPage,
     summary="List jobs",
     description="The caller's jobs, newest first, optionally only those in one state.",
-    responses=error_responses(401, 422),
+    responses=error_responses(401, 422, 503),
 )
 def list_jobs(
     owner: OwnerDep,
@@ -101,12 +111,12 @@ def list_jobs(
 
 
 @router.get(
-    "/{job_id}",
+    "/{job_id:job_id}",
     response_model=Job,
     summary="Get a job",
     description="State, stage, progress, mirrors found, metrics, timestamps and error. While the job is unfinished "
     "the answer carries `Retry-After` (seconds before polling again).",
-    responses=error_responses(401, 404),
+    responses=error_responses(401, 404, 503),
 )
 def get_job(job_id: str, owner: OwnerDep, store: StoreDep, response: Response) -> Job:
     record = owned_record(store, owner, job_id)
@@ -121,7 +131,10 @@ def get_job(job_id: str, owner: OwnerDep, store: StoreDep, response: Response) -
     summary="Cancel a job",
     description="A queued job is cancelled at once; a running one stops within seconds (`cancel_requested` is "
     "true until it has). Cancelling a cancelled job answers 200; a finished one, 409.",
-    responses={200: {"model": Job, "description": "the job was already cancelled"}, **error_responses(401, 404, 409)},
+    responses={
+        200: {"model": Job, "description": "the job was already cancelled"},
+        **error_responses(401, 404, 409, 503),
+    },
 )
 def cancel_job(job_id: str, owner: OwnerDep, store: StoreDep, settings: SettingsDep) -> JSONResponse:
     record = owned_record(store, owner, job_id)
@@ -145,12 +158,12 @@ def _cancel(record: JobRecord, store: JobStore, settings: Settings) -> JobRecord
 
 
 @router.delete(
-    "/{job_id}",
+    "/{job_id:job_id}",
     status_code=204,
     summary="Delete a job",
     description="Cancels the job if unfinished and deletes it with its files. A running job is deleted once it has "
     "stopped (202, within seconds); otherwise at once (204).",
-    responses={202: {"model": Job, "description": "stopping; deleted once stopped"}, **error_responses(401, 404)},
+    responses={202: {"model": Job, "description": "stopping; deleted once stopped"}, **error_responses(401, 404, 503)},
 )
 def delete_job(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep, settings: SettingsDep) -> Response:
     record = owned_record(store, owner, job_id)

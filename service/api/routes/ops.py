@@ -12,7 +12,8 @@ from redis import RedisError
 
 from worker.celery_app import QUEUES
 
-from ..deps import SettingsDep, StoreDep
+from ..deps import OwnerDep, SettingsDep, StoreDep
+from ..errors import error_responses
 
 router = APIRouter(tags=["operations"])
 
@@ -60,9 +61,13 @@ def readyz(store: StoreDep, settings: SettingsDep) -> JSONResponse:
 @router.get(
     "/metrics",
     summary="Prometheus metrics",
-    description="symgs_jobs{state}, symgs_job_duration_seconds, symgs_queue_depth{queue}, symgs_workers{mode}.",
+    description="symgs_jobs{state}, symgs_job_duration_seconds, symgs_queue_depth{queue}, symgs_workers{mode}. "
+    "When the server has API keys, any of them (Prometheus sends it as `authorization: {credentials: ...}`).",
     response_class=Response,
-    responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}, "description": "metrics"}},
+    responses={
+        200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}, "description": "metrics"},
+        **error_responses(401, 503),
+    },
 )
-def metrics(request: Request) -> Response:
+def metrics(request: Request, _: OwnerDep) -> Response:
     return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)

@@ -17,7 +17,7 @@ from ..errors import ApiError, error_responses
 from ..job_view import RETRY_AFTER_S, owned_record
 
 router = APIRouter(prefix="/v1/jobs", tags=["results"])
-_ERRORS = error_responses(401, 404, 409)
+_ERRORS = error_responses(401, 404, 409, 503)
 
 
 def _artifact(

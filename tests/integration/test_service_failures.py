@@ -1,0 +1,67 @@
+"""Failures tell the truth at the client: a bad input found by the worker is named by its code, the operations
+routes want a key when keys are set, OPTIONS names the methods a path takes, and an Idempotency-Key is bound to
+one request."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import httpx
+
+from tests.integration.conftest import TINY, finished, wait_for
+from tests.integration.test_service_cli import symgs
+
+
+def _nan_positions(ply: bytes) -> bytes:
+    """The same scene with the first Gaussian's x set to NaN: the header is valid, so the API accepts it."""
+    body = ply.index(b"end_header\n") + len(b"end_header\n")
+    return ply[:body] + struct.pack("<f", float("nan")) + ply[body + 4 :]
+
+
+def test_nan_positions_fail_as_non_finite(api_a: httpx.Client, small_ply: bytes, stack, tmp_path) -> None:  # noqa: ANN001
+    response = api_a.post(
+        "/v1/jobs", files={"scene": ("nan.ply", _nan_positions(small_ply))}, data={"params": json.dumps(TINY)}
+    )
+    assert response.status_code == 202, response.text
+    job = wait_for(api_a, response.json()["id"], finished, timeout=60)
+    assert job["state"] == "failed" and job["error"]["code"] == "non_finite", job["error"]
+    assert "NaN" in job["error"]["message"] and "x (1 values)" in job["error"]["message"]
+
+    path = tmp_path / "nan.ply"
+    path.write_bytes(_nan_positions(small_ply))
+    run = symgs(stack, "submit", str(path), "--params", json.dumps(TINY))
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "nan.ply: failed: non_finite: " in run.stdout, run.stdout
+
+
+def test_metrics_want_a_key(stack, api_a: httpx.Client) -> None:  # noqa: ANN001
+    anonymous = httpx.get(f"{stack.api_url}/metrics")
+    assert anonymous.status_code == 401 and anonymous.json()["error"]["code"] == "unauthorized"
+    assert anonymous.headers["www-authenticate"] == "Bearer"
+    assert api_a.get("/metrics").status_code == 200
+
+
+def test_options_name_every_method_of_the_path(api_a: httpx.Client) -> None:
+    job_id = "0" * 32
+    expected = {f"/v1/jobs/{job_id}:cancel": "POST, OPTIONS", f"/v1/jobs/{job_id}": "GET, DELETE, OPTIONS",
+                "/v1/jobs": "GET, POST, OPTIONS"}  # fmt: skip
+    for path, allow in expected.items():
+        response = api_a.options(path)
+        assert (response.status_code, response.headers["allow"]) == (204, allow), path
+    wrong = api_a.get(f"/v1/jobs/{job_id}:cancel")
+    assert wrong.status_code == 405 and wrong.headers["allow"] == "POST"
+
+
+def test_a_reused_idempotency_key_with_another_request_is_refused(api_a: httpx.Client, small_ply: bytes) -> None:
+    def post(params: dict, scene: bytes = small_ply) -> httpx.Response:
+        files, data = {"scene": ("s.ply", scene)}, {"params": json.dumps(params)}
+        return api_a.post("/v1/jobs", files=files, data=data, headers={"Idempotency-Key": "reuse-7"})
+
+    params = {**TINY, "iterations": 5000}
+    first = post(params)
+    assert first.status_code == 202, first.text
+    assert post(params).json()["id"] == first.json()["id"]
+    for other in (post({**params, "iterations": 4000}), post(params, small_ply[:-4] + b"\0\0\0\0")):
+        assert other.status_code == 422 and other.json()["error"]["code"] == "idempotency_key_reused", other.text
+    assert api_a.post(f"/v1/jobs/{first.json()['id']}:cancel").status_code in (200, 202)
