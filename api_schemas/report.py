@@ -44,12 +44,13 @@ class LevelReport(BaseModel):
     coverage: float
     psnr_before: float | None = Field(description="after dropping the right side, before the fine-tune")
     psnr_after: float | None
-    ssim: float
     stored_after: int
     seconds: float
     accepted: bool
     reason: str
     gate: float | None = Field(None, description="colour-agreement gate of the membership (null: geometry alone)")
+    iterations: int = Field(0, description="fine-tune steps run (it stops once a stretch stops gaining)")
+    archive_bytes: int | None = Field(None, description="the whole archive with this level, when it held the floor")
 
 
 class StageReport(BaseModel):
@@ -62,11 +63,8 @@ class StageReport(BaseModel):
     psnr_after: float | None
     cost_db: float | None
     seconds: float
-    kept: bool = True
-    reason: str = ""
     removed: int | None = Field(None, description="pruning: Gaussians; sh_reduction: SH bands")
-    threshold: float | None = None
-    psnr_if_kept: float | None = Field(None, description="an undone reduction: the PSNR it measured")
+    predicted: bool = Field(False, description="psnr_after is the sensitivity model's prediction, not a render")
 
 
 class Steps(BaseModel):

@@ -61,12 +61,13 @@ class LevelReport:
     coverage: float
     psnr_before: float  # after dropping the right side, before the fine-tune
     psnr_after: float
-    ssim: float
     stored_after: int
     seconds: float
     accepted: bool
     reason: str
     gate: float | None = None  # colour-agreement gate of the membership tried (None: geometry alone)
+    iterations: int = 0  # fine-tune steps run (it stops once a stretch stops gaining)
+    archive_bytes: int | None = None  # the whole archive with this level, when it held the floor
 
 
 @dataclass(frozen=True)
@@ -80,11 +81,8 @@ class StageReport:
     psnr_after: float
     cost_db: float | None
     seconds: float
-    kept: bool = True
-    reason: str = ""
     removed: int | None = None  # pruning: Gaussians; sh_reduction: SH bands
-    threshold: float | None = None
-    psnr_if_kept: float | None = None  # an undone reduction: the PSNR it measured
+    predicted: bool = False  # psnr_after is the sensitivity model's prediction, not a render
 
 
 @dataclass(frozen=True)

@@ -180,9 +180,9 @@ def dataset_views(
 
 
 @torch.no_grad()
-def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor) -> Fidelity:
+def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *, with_ssim: bool = True) -> Fidelity:
     """Fidelity of ``scene`` on ``views``: PSNRs from the squared error summed over every view (full frame, and the
-    object's pixels), SSIM the mean over views."""
+    object's pixels), SSIM the mean over views (NaN without ``with_ssim``: decisions read the PSNRs alone)."""
     from .render import render
 
     if not views:
@@ -197,7 +197,8 @@ def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor) ->
         pixels += error.numel()
         obj += float(error[mask].sum())
         object_pixels += int(mask.sum())
-        ssims.append(float(ssim(image, target)))
+        if with_ssim:
+            ssims.append(float(ssim(image, target)))
     psnr = mse_to_psnr(full / pixels)
     psnr_object = mse_to_psnr(obj / object_pixels) if object_pixels else psnr
-    return Fidelity(psnr, psnr_object, sum(ssims) / len(ssims))
+    return Fidelity(psnr, psnr_object, sum(ssims) / len(ssims) if ssims else math.nan)

@@ -1,22 +1,23 @@
-"""One PSNR budget shared by every lossy stage, and the search for the quantisation steps that spend the rest of it.
+"""The codec that spends the PSNR budget: the fewest bytes whose predicted error stays within what the floor allows.
 
-Errors of independent stages add in mean squared error, not in dB. The budget is the excess MSE between the
-reference (the input's own PSNR, or +inf against renders of the input) and the floor; the stages get cumulative
-shares of it, in the order they run: mirrors up to 60%, pruning up to 70%, SH reduction up to 80%, quantisation up
-to 100%. A stage's floor is the PSNR at its cumulative share, so what an earlier stage leaves unspent passes on to
-the next, and quantisation, which always runs last, takes whatever remains.
+Each section has a ladder of quantisers: its step from 1/8 to 32 times the preset's, by sqrt 2 (higher SH also as a
+palette of vectors, ``codec.palette``, at the same steps). A rung's bytes are a real encode of the section; its error
+is the sensitivity-weighted squared error of its decode (``sensitivity``), a prediction of the fitting renders'
+error. Entropy-coded quantisers trade one bit per coded component for a quarter of the error, so a section's bits
+fall convexly as its error grows: at a price ``mu`` (bits per unit of squared error) each section's best rung
+minimises bits + mu * error by itself, and one bisection on ``mu`` spends the allowed error, wherever it buys the
+most bytes. At the same price a Gaussian's highest SH bands go when their error costs less than their bits are worth
+(model no more than the scene needs); Gaussians the renders hardly miss are ranked here and removed as far as the
+renders allow (``encode``).
 
-Quantisation spends its share in three moves (``fit_steps``): the preset's steps are balanced on the scene's own
-renders so that every coded component carries the same error (``balance_steps``), their common factor is fitted to
-the floor (``fit_quantization``), and what that leaves is spent one attribute at a time (``coarsen_one_by_one``).
-On the plant capture (113k, SH 0) at the 60.36 dB of `.spz` v3: 1,363,603 bytes with one factor for the preset's
-steps, 1,184,853 after all three (BENCHMARKS.md, Codec: ``benchmarks/bench_steps.py``).
+Rungs are evaluated lazily and kept, so moving ``mu`` costs a few encodes, and the calibration (``choose`` again
+with the allowed error rescaled by what real renders measured, see ``encode``) costs none.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -24,24 +25,25 @@ import torch
 from torch import Tensor
 
 from ..codec.order import coding_order, grid_cells
-from ..codec.quantize import band_slices
+from ..codec.palette import MAX_PALETTE, RowWeights, ShPaletteCodec
+from ..codec.quantize import (
+    OpacityCodec,
+    PositionCodec,
+    RotationCodec,
+    ScalarGridCodec,
+    ShDcCodec,
+    ShRestCodec,
+    band_slices,
+)
+from ..codec.section import SectionCodec
 from ..codec.steps import QuantSteps
-from ..metrics import mse_to_psnr, psnr_to_mse
 from ..scene import GaussianScene
-from ..views import View, evaluate
-from .state import LevelState
+from .sensitivity import Sensitivity
 
-# Mirrors lead: on playbot (125k) a 60% share kept a level that 40% refused, and the archive came out 9% smaller.
-SHARES = {"mirrors": 0.6, "pruning": 0.7, "sh_reduction": 0.8, "quantization": 1.0}
-
-
-def split_budget(floor: float, reference: float) -> dict[str, float]:
-    """The floor (dB) of each stage in ``SHARES`` for an overall ``floor`` below the ``reference`` PSNR."""
-    if math.isinf(floor) or floor >= reference:
-        return {stage: floor for stage in SHARES}
-    base = psnr_to_mse(reference)
-    excess = psnr_to_mse(floor) - base
-    return {stage: mse_to_psnr(base + share * excess) for stage, share in SHARES.items()}
+RUNGS = range(-6, 11)  # a ladder's steps: 2^(k/2) times the preset's, 1/8 .. 32
+_EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette holds every row exactly
+_PALETTE = 1 << 14  # the k-means palette size otherwise
+_MU_STEPS = 48  # bisection steps on the price (log scale)
 
 
 def extent_of(stored: GaussianScene) -> float:
@@ -52,257 +54,230 @@ def extent_of(stored: GaussianScene) -> float:
     return float((means.max(dim=0).values - means.min(dim=0).values).max())
 
 
-def held_out_psnr(
-    state: LevelState, stored: GaussianScene, test: Sequence[View], background: Tensor
-) -> float:
-    """PSNR (the worse of full frame and object pixels) on the fitting views of ``state``'s levels with ``stored``
-    (a decoded copy) in place of its stored set."""
-    return evaluate(LevelState(stored, state.normals, state.offsets, state.bits).expanded(), test, background).worst
+@dataclass(frozen=True)
+class Rung:
+    codec: SectionCodec
+    bits: float
+    error: float
 
 
-def quantized(stored: GaussianScene, steps: QuantSteps, sections: tuple[str, ...] | None = None) -> GaussianScene:
-    """``stored`` as a reader of its quantised archive decodes it (every section encoded, then decoded); only the
-    attributes named in ``sections`` when given, the others exact."""
-    codecs = steps.codecs(extent_of(stored))
-    out = {}
-    for name, value in stored.tensors().items():
-        if sections is not None and name not in sections:
-            out[name] = value.detach().cpu()
-            continue
-        array = value.detach().cpu().contiguous().numpy()
-        coded = codecs[name].encode(array)
-        out[name] = torch.from_numpy(codecs[name].decode(coded.payload, array.shape, coded.params, coded.raw_length))
-    return GaussianScene(**out).to(stored.device)
+class Ladder:
+    """The rungs of one section, finest first, built by ``make(k)`` and evaluated on first use.
 
+    A codec's bytes are not convex along its ladder everywhere: where it changes layout (values on a grid of their
+    own at some steps, positions too fine for the Morton range) a rung can cost more than the next. Cheap sections
+    are searched over every rung (``exhaustive``); the higher SH, whose encodes cost the most, walks downhill from
+    where it last stood, looking two rungs ahead before it stops.
+    """
 
-# Attributes whose steps are balanced, with their section and coded components per Gaussian (rotations: three).
-_ATTRIBUTES = {"position": ("means", 3), "rotation": ("quats", 3), "scale": ("scales", 3),
-               "opacity": ("opacities", 1), "dc": ("sh_dc", 3)}  # fmt: skip
-_PROBE = 2.0  # steps are probed at twice the start, so attributes already on a grid that fine still show an error
-_MAX_SHIFT = 8.0  # how far balancing may move one attribute's step from the start, either way
-_EXACT = 0.01  # an error per component below this share of the mean counts as none
-_EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette starts exact
-_PALETTE = 1 << 14  # the k-means palette size tried first otherwise
-# Palette SH steps start this much finer again; benchmarks/bench_steps.py at the .spz floors: playbot 31k 379,026 ->
-# 375,194 B, kacytran 88,335 -> 83,195 B (symgs bench: playbot 125k unchanged within 0.1%).
-_PALETTE_SH = 0.8
+    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], SectionCodec], sens: Sensitivity,
+                 *, exhaustive: bool = True) -> None:  # fmt: skip
+        self.section, self.values, self.make, self.sens = section, values, make, sens
+        self.exhaustive = exhaustive
+        self._rungs: dict[int, Rung] = {}
+
+    def rung(self, k: int) -> Rung:
+        if k not in self._rungs:
+            codec = self.make(k)
+            coded = codec.encode(self.values)
+            decoded = codec.decode(coded.payload, self.values.shape, coded.params, coded.raw_length)
+            self._rungs[k] = Rung(codec, 8.0 * len(coded.payload), self.sens.error(self.section, self.values, decoded))
+        return self._rungs[k]
+
+    def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
+        """The rung minimising bits + mu * error (searched from ``start`` when not exhaustive)."""
+        cost = lambda k: self.rung(k).bits + mu * self.rung(k).error  # noqa: E731
+        if self.exhaustive:
+            k = min(RUNGS, key=cost)
+            return k, self.rung(k)
+        k = min(max(start, RUNGS.start), RUNGS.stop - 1)
+        moved = True
+        while moved:
+            moved = False
+            for step in (1, 2, -1, -2):
+                if RUNGS.start <= k + step < RUNGS.stop and cost(k + step) < cost(k):
+                    k, moved = k + step, True
+                    break
+        return k, self.rung(k)
 
 
 @dataclass
-class Balanced:
-    """Balanced steps, and per attribute the excess MSE measured at the probe and the coded components per Gaussian."""
+class Choice:
+    """Each section's codec, which Gaussians stay, each one's SH degree, and what the model predicts of them."""
 
-    steps: QuantSteps
-    errors: dict[str, float]
-    components: dict[str, float]
+    codecs: dict[str, SectionCodec]
+    keep: Tensor  # [N] bool
+    degrees: Tensor | None  # [N] SH degree kept (None: every band)
+    errors: dict[str, float]  # predicted growth of the fitting MSE: "codec", "sh_reduction"
+    bits: float  # predicted bits of the attribute sections
+    mu: float
+    rungs: dict[str, int] = field(default_factory=dict)
 
     @property
-    def order(self) -> list[str]:
-        """Attributes with coded components, the most first: where a coarser step saves the most bytes."""
-        return sorted((k for k, c in self.components.items() if c > 0), key=lambda k: -self.components[k])
-
-
-def _times(steps: QuantSteps, attribute: str, factor: float) -> QuantSteps:
-    """``steps`` with one attribute's step (a key of ``_ATTRIBUTES``, or ``sh1``..``sh3``) times ``factor``; for
-    ``sh_palette`` the palette shrinks as a step growing by ``factor`` would cut the error (size / factor^4)."""
-    if attribute == "sh_palette":
-        return replace(steps, sh_palette=max(2, round(steps.sh_palette / factor**4)))
-    if attribute.startswith("sh"):
-        band = int(attribute[2:]) - 1
-        return replace(steps, sh=tuple(s * factor if i == band else s for i, s in enumerate(steps.sh)))
-    value = getattr(steps, attribute) * factor
-    return replace(steps, **{attribute: min(value, 0.5) if attribute == "opacity" else value})
-
-
-def balance_steps(
-    state: LevelState, test: Sequence[View], background: Tensor, *, start: QuantSteps, psnr_before: float
-) -> Balanced:
-    """Steps that give every coded component the same share of the error, measured on this scene's renders.
-
-    With entropy-coded uniform quantisers each halving of a step costs one bit per coded component and quarters that
-    attribute's error, so a given total error is cheapest when every component carries the same share of it (the
-    slopes of rate against error are then equal). The shares depend on the scene (how anisotropic its Gaussians
-    are, how much of its colour is view-dependent, which attributes a previous codec already rounded), so each
-    attribute, and each SH band, is quantised alone at twice the ``start`` steps, its excess error over
-    ``psnr_before`` measured on the held-out views, and its step rescaled (error grows as the step squared) to the
-    mean error per component, within a factor of 8 either way.
-    """
-    base = psnr_to_mse(psnr_before)
-    probe = start.scaled(_PROBE)
-    stored = state.stored.detach()
-
-    def excess(scene: GaussianScene) -> float:
-        return max(psnr_to_mse(held_out_psnr(state, scene, test, background)) - base, 0.0)
-
-    errors, components = {}, {}
-    for name, (section, count) in _ATTRIBUTES.items():
-        errors[name], components[name] = excess(quantized(stored, probe, (section,))), float(count)
-    rounded = quantized(stored, probe, ("sh_rest",)).sh_rest if stored.sh_degree else None
-    for lvl, rows in enumerate(band_slices(stored.sh_degree), start=1):
-        mixed = stored.sh_rest.clone()
-        mixed[:, rows] = rounded[:, rows]
-        kept = float((stored.sh_rest[:, rows].abs().amax(dim=(1, 2)) > 0).double().mean())
-        errors[f"sh{lvl}"] = excess(stored.with_(sh_rest=mixed))
-        components[f"sh{lvl}"] = (rows.stop - rows.start) * 3 * kept
-    coded = [k for k in errors if components[k] > 0]
-    mean_error = sum(errors[k] for k in coded) / max(sum(components[k] for k in coded), 1e-12)
-    # An attribute exact at the probe (already on a grid that fine) shows no slope to balance: its step stays.
-    measured = [k for k in coded if errors[k] > _EXACT * mean_error * components[k]]
-    if not measured:
-        return Balanced(start, errors, components)
-    per_component = sum(errors[k] for k in measured) / sum(components[k] for k in measured)
-    ratio = {k: 1.0 for k in errors}
-    for k in measured:
-        ratio[k] = float(np.clip(math.sqrt(per_component * components[k] / errors[k]), 1 / _MAX_SHIFT, _MAX_SHIFT))
-    steps = start
-    for k, r in ratio.items():
-        steps = _times(steps, k, r)
-    return Balanced(steps, errors, components)
-
-
-@dataclass
-class QuantFit:
-    steps: QuantSteps
-    factor: float
-    psnr: float
-    tries: list[dict]
-    probe_errors: dict[str, float] = field(default_factory=dict)  # of ``balance_steps``, when it ran
-
-
-def fit_quantization(
-    state: LevelState,
-    test: Sequence[View],
-    background: Tensor,
-    *,
-    floor: float,
-    start: QuantSteps,
-    psnr_before: float,
-    max_tries: int = 6,
-    slack_db: float = 0.25,
-) -> QuantFit | None:
-    """The coarsest multiple of ``start`` whose decoded scene keeps the held-out PSNR at or above ``floor``.
-
-    The quantisation error grows as the square of the step, so each try rescales the steps by the square root of
-    (error allowed / error measured), aiming at 95% of what is allowed, and bisects between the coarsest pass and
-    the finest failure when that aim falls outside them; it stops at the first pass within ``slack_db`` of the
-    floor, when pass and failure lie within 4% of each other, or after ``max_tries`` renders. None when no try
-    passes (the caller then stores the attributes losslessly).
-    """
-    if math.isinf(floor):
-        return None
-    allowed = psnr_to_mse(floor) - psnr_to_mse(psnr_before)
-    if allowed <= 0:
-        return None
-    factor, best, failed, tries = 1.0, None, math.inf, []
-    for _ in range(max_tries):
-        steps = start.scaled(factor)
-        value = held_out_psnr(state, quantized(state.stored, steps), test, background)
-        tries.append({"factor": factor, "psnr": value})
-        if value >= floor and (best is None or factor > best.factor):
-            best = QuantFit(steps, factor, value, tries)
-            if value < floor + slack_db:
-                break
-        elif value < floor:
-            failed = min(failed, factor)
-        error = psnr_to_mse(value) - psnr_to_mse(psnr_before)
-        proposal = factor * 8.0 if error <= 0 else factor * math.sqrt(0.95 * allowed / error)
-        proposal = float(np.clip(proposal, factor / 8.0, factor * 8.0))
-        low = best.factor if best is not None else 0.0
-        if not low < proposal < failed:  # the model overshot what the renders have bracketed: bisect instead
-            proposal = math.sqrt(low * failed) if low > 0 and math.isfinite(failed) else proposal
-        if best is not None and (failed / best.factor < 1.04 or proposal <= best.factor * 1.02):
-            break
-        factor = proposal
-    if best is not None:
-        best.tries = tries
-    return best
-
-
-def coarsen_one_by_one(
-    state: LevelState,
-    test: Sequence[View],
-    background: Tensor,
-    fit: QuantFit,
-    *,
-    floor: float,
-    order: list[str],
-    max_tries: int = 16,
-    factors: tuple[float, ...] = (math.sqrt(2.0), 2.0**0.25, 2.0**0.125),
-) -> QuantFit:
-    """Spend what the common factor left of the budget: coarsen one attribute at a time, in ``order`` (the
-    attributes most likely to pay first), keeping each change whose renders stay at or above ``floor``.
-
-    One factor for every step lands short of the floor wherever the error jumps instead of growing smoothly (an
-    attribute on a grid of its own is exact up to twice that grid's step, then not), and the last try that passed
-    can sit a decibel or more above the floor. Each attribute is coarsened by ``factors[0]``; one that fails is
-    tried again by the next, smaller factor, and left alone once the last fails.
-    """
-    candidates = [(attribute, 0) for attribute in order]
-    best, tries = fit, list(fit.tries)
-    while candidates and len(tries) - len(fit.tries) < max_tries:
-        attribute, which = candidates.pop(0)
-        steps = _times(best.steps, attribute, factors[which])
-        value = held_out_psnr(state, quantized(state.stored, steps), test, background)
-        tries.append({"coarsen": attribute, "by": factors[which], "psnr": value})
-        if value >= floor:
-            best = QuantFit(steps, best.factor, value, tries)
-            candidates.append((attribute, which))  # the others get their turn before it comes round again
-        elif which + 1 < len(factors):
-            candidates.append((attribute, which + 1))
-    best.tries = tries
-    return best
-
-
-def archive_bytes(stored: GaussianScene, steps: QuantSteps) -> int:
-    """Bytes of the attribute sections of ``stored`` quantised with ``steps`` (the archive less header and masks)."""
-    codecs = steps.codecs(extent_of(stored))
-    stored = stored.detach().to("cpu")
-    bits = torch.zeros(len(stored), 0, dtype=torch.bool)
-    stored = stored.select(coding_order(stored, bits, grid_cells(codecs["means"], stored.means.numpy())))
-    return sum(len(codecs[k].encode(v.contiguous().numpy()).payload) for k, v in stored.tensors().items())
+    def error(self) -> float:
+        return sum(self.errors.values())
 
 
 def palette_start(sh_rest: Tensor) -> int:
-    """The first palette size tried for ``sh_rest`` [N, K, 3]: every distinct row (exact) when they number fewer
+    """The palette size tried for ``sh_rest`` [N, K, 3]: every distinct non-zero row (exact) when they number fewer
     than ``_EXACT_PALETTE``, as in scenes decoded from SOG; else ``_PALETTE``."""
     rows = sh_rest.detach().reshape(len(sh_rest), -1)
     distinct = len(torch.unique(rows[rows.any(dim=1)], dim=0))
-    return distinct + 1 if distinct < _EXACT_PALETTE else _PALETTE
+    return min(distinct + 1 if distinct < _EXACT_PALETTE else _PALETTE, MAX_PALETTE)
 
 
-def fit_steps(
-    state: LevelState,
-    test: Sequence[View],
-    background: Tensor,
-    *,
-    floor: float,
-    start: QuantSteps,
-    psnr_before: float,
-) -> QuantFit | None:
-    """The quantisation steps for ``floor``: balanced on this scene's renders (``balance_steps``), their common
-    factor fitted (``fit_quantization``), then what is left spent one attribute at a time (``coarsen_one_by_one``).
-    Scenes with higher SH bands are fitted twice, with those bands per coefficient and as a palette of vectors
-    (``codec.palette``, shrunk further while it pays), and the smaller archive wins. None when no quantisation keeps
-    the floor."""
-    if math.isinf(floor) or psnr_to_mse(floor) <= psnr_to_mse(psnr_before):
-        return None
-    balanced = balance_steps(state, test, background, start=start, psnr_before=psnr_before)
-    fits = []
-    variants = [(balanced.steps, balanced.order)]
-    if state.stored.sh_degree:
-        size = palette_start(state.stored.sh_rest)
-        # A palette codes an SH vector per entry, not per Gaussian: fewer coded components than ``balance_steps``
-        # counted, so the steps that balance the error are finer by the square root of entries per Gaussian; and
-        # finer again (``_PALETTE_SH``) where the entry classes make the entries few renders see cheaper.
-        shrink = _PALETTE_SH * math.sqrt(min(1.0, size / max(len(state.stored), 1)))
-        palette = replace(balanced.steps, sh_palette=size, sh=tuple(s * shrink for s in balanced.steps.sh))
-        variants.append((palette, ["sh_palette"] + balanced.order))
-    for steps, order in variants:
-        fit = fit_quantization(state, test, background, floor=floor, start=steps, psnr_before=psnr_before)
-        if fit is not None:
-            fits.append(coarsen_one_by_one(state, test, background, fit, floor=floor, order=order))
-    if not fits:
-        return None
-    best = fits[0] if len(fits) == 1 else min(fits, key=lambda f: archive_bytes(state.stored, f.steps))
-    best.probe_errors = balanced.errors
-    return best
+class RateDistortion:
+    """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``."""
+
+    def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps) -> None:
+        stored = stored.detach().to("cpu")
+        self.extent = extent_of(stored)
+        cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy())
+        order = coding_order(stored, torch.zeros(len(stored), 0, dtype=torch.bool), cells)
+        self.order = order
+        self.stored, self.sens = stored.select(order), sens.select(order)
+        self.start = start
+        arrays = {k: v.contiguous().numpy() for k, v in self.stored.tensors().items()}
+        s, x = start, self.extent
+        step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
+        self.ladders: dict[str, list[Ladder]] = {
+            "means": [Ladder("means", arrays["means"], lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)),
+                             self.sens)],
+            "quats": [Ladder("quats", arrays["quats"], lambda k: RotationCodec(step(s.rotation)(k)), self.sens)],
+            "scales": [Ladder("scales", arrays["scales"], lambda k: ScalarGridCodec(step(s.scale)(k)), self.sens)],
+            "opacities": [Ladder("opacities", arrays["opacities"],
+                                 lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)), self.sens)],
+            "sh_dc": [Ladder("sh_dc", arrays["sh_dc"], lambda k: ShDcCodec(step(s.dc)(k)), self.sens)],
+        }  # fmt: skip
+        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"])  # fmt: skip
+        self._at: dict[tuple[str, int], int] = {}
+
+    def _sh_ladders(self, sh_rest: np.ndarray) -> list[Ladder]:
+        """Per coefficient, and, with higher bands, as a palette (weighted by each row's sensitivity, so rows the
+        renders hardly see take coarser entry steps)."""
+        bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
+        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, exhaustive=False)]
+        if self.stored.sh_degree:
+            size = palette_start(self.stored.sh_rest)
+            weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
+            # A palette codes a vector per entry, not per Gaussian: its steps start finer by the square root of
+            # entries per Gaussian, for the same error per coded component.
+            finer = math.sqrt(min(1.0, size / max(len(sh_rest), 1)))
+            palette = lambda k: ShPaletteCodec(size, tuple(b * finer for b in bands(k)), weights)  # noqa: E731
+            ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
+        return ladders
+
+    def best(self, section: str, mu: float) -> tuple[int, int, Rung]:
+        """The cheapest rung of ``section`` at price ``mu``: (ladder, rung index, rung)."""
+        options = []
+        for i, ladder in enumerate(self.ladders[section]):
+            k, rung = ladder.best(mu, self._at.get((section, i), 0))
+            self._at[(section, i)] = k
+            options.append((rung.bits + mu * rung.error, i, k, rung))
+        _, i, k, rung = min(options, key=lambda o: o[0])
+        return i, k, rung
+
+    def choose(self, allowed: float, *, keep: Tensor | None = None) -> Choice:
+        """The choice at the price that spends ``allowed`` (predicted), or the finest rungs when nothing can.
+
+        ``keep`` [N] bool, in the input's order: the Gaussians pruning kept (``prune_order``); every one when None.
+        Bits scale with the share kept."""
+        kept = torch.ones(len(self.stored), dtype=torch.bool) if keep is None else keep[self.order]
+        lo, hi = 1e-3, 1e18  # bits per unit of MSE, bracketing every scene here
+        choice = self._at_price(hi, kept)
+        if choice.error > allowed:
+            return choice  # even the finest rungs overspend: the caller falls back to storing values exactly
+        for _ in range(_MU_STEPS):
+            mu = math.sqrt(lo * hi)
+            trial = self._at_price(mu, kept)
+            if trial.error <= allowed:
+                hi, choice = mu, trial
+            else:
+                lo = mu
+            if hi / lo < 1.02:
+                break
+        return choice
+
+    def _at_price(self, mu: float, keep: Tensor) -> Choice:
+        codecs, rungs, bits, error = {}, {}, 0.0, 0.0
+        for section in self.ladders:
+            i, k, rung = self.best(section, mu)
+            codecs[section], rungs[section] = rung.codec, k
+            bits, error = bits + rung.bits, error + rung.error
+        share = float(keep.double().mean()) if len(keep) else 1.0
+        errors = {"codec": error * share, "sh_reduction": 0.0}
+        degrees = self._sh_degrees(mu, codecs["sh_rest"], bits_of=lambda s: self._bits(s, mu))
+        if degrees is not None:
+            errors["sh_reduction"] = float(self._dropped_sh_error(degrees)[keep].sum())
+        return Choice(codecs, keep, degrees, errors, bits * share, mu, rungs)
+
+    def prune_order(self) -> Tensor:
+        """Indices [N] of the input, the Gaussians whose absence the renders would miss least first. Removal errors
+        all darken towards the background and add up where they overlap, so how many may go is measured, not
+        predicted (``encode.fit_codec``)."""
+        removal = self.sens.removal(self.stored.opacities)
+        return self.order[torch.argsort(removal, stable=True)]
+
+    def _bits(self, section: str, mu: float) -> float:
+        return self.best(section, mu)[2].bits
+
+    def _band_energy(self) -> Tensor:
+        """Sensitivity-weighted energy [N, degree] of each Gaussian's SH bands 1..degree."""
+        w = self.sens.weights["sh_rest"]
+        e = w * self.stored.sh_rest.to(torch.float64) ** 2
+        return torch.stack([e[:, s].sum(dim=(1, 2)) for s in band_slices(self.stored.sh_degree)], dim=1)
+
+    def _sh_degrees(self, mu: float, codec: SectionCodec, bits_of: Callable[[str], float]) -> Tensor | None:
+        """Each Gaussian's SH degree: the lowest whose dropped bands cost less error than their bits are worth.
+        A palette keeps whole rows (a partly dropped row would be a new palette entry): its rows go to the zero
+        entry or stay."""
+        degree = self.stored.sh_degree
+        if not degree:
+            return None
+        energy = self._band_energy()  # [N, degree]
+        # Error of truncating to degree d: the energy of bands d+1..degree.
+        tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])
+        cost_err = torch.cat([tail, torch.zeros(len(energy), 1, dtype=tail.dtype)], dim=1)  # [N, degree + 1]
+        nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
+        total_bits = bits_of("sh_rest")
+        widths = torch.tensor([0] + [s.stop - s.start for s in band_slices(degree)], dtype=torch.float64)
+        if isinstance(codec, ShPaletteCodec):
+            row_bits = total_bits / max(int(nonzero.sum()), 1)
+            kept_bits = torch.stack([torch.zeros(len(energy), dtype=torch.float64),
+                                     torch.full((len(energy),), row_bits, dtype=torch.float64)], dim=1)
+            cost = kept_bits + mu * cost_err[:, [0, degree]]
+            return torch.where(cost.argmin(dim=1) == 0, 0, degree)
+        per_coefficient = total_bits / max(int(nonzero.sum()) * int(widths.sum()), 1)
+        kept_bits = torch.cumsum(widths, dim=0) * per_coefficient  # [degree + 1]
+        cost = kept_bits[None, :] + mu * cost_err
+        return cost.argmin(dim=1)
+
+    def _dropped_sh_error(self, degrees: Tensor) -> Tensor:
+        energy = self._band_energy()
+        band = torch.arange(1, energy.shape[1] + 1)
+        return (energy * (band[None, :] > degrees[:, None])).sum(dim=1)
+
+    def apply(self, choice: Choice, *, pruning: bool = True, sh_reduction: bool = True) -> tuple[Tensor, GaussianScene]:
+        """The stored set (in the input's order) as the choice leaves it: removed Gaussians gone, dropped SH bands
+        zero; and the indices [M] of the input it keeps. Either reduction may be left out (for the accounting)."""
+        stored = self.stored
+        if choice.degrees is not None and sh_reduction:
+            band_of = torch.tensor([math.isqrt(i + 1) for i in range(stored.sh_rest.shape[1])])
+            keep_band = band_of[None, :] <= choice.degrees[:, None]
+            stored = stored.with_(sh_rest=stored.sh_rest * keep_band[:, :, None].to(stored.sh_rest.dtype))
+        keep = choice.keep if pruning else torch.ones_like(choice.keep)
+        kept = torch.sort(self.order[keep]).values
+        back = torch.empty_like(self.order)
+        back[self.order] = torch.arange(len(self.order))
+        return kept, stored.select(back[kept])
+
+    def steps(self, choice: Choice) -> QuantSteps:
+        """The steps the choice settled on, for the report."""
+        c = choice.codecs
+        sh = getattr(c["sh_rest"], "steps", self.start.sh)
+        palette = c["sh_rest"].size if isinstance(c["sh_rest"], ShPaletteCodec) else 0
+        return replace(
+            self.start, position=c["means"].step / max(self.extent, 1e-12), rotation=c["quats"].step,  # type: ignore[attr-defined]
+            scale=c["scales"].step, opacity=c["opacities"].step, dc=c["sh_dc"].step,  # type: ignore[attr-defined]
+            sh=tuple(sh), sh_palette=palette,
+        )  # fmt: skip

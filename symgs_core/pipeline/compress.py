@@ -13,12 +13,13 @@ import torch
 
 from ..cameras import COORDINATE_CONVENTION, scene_bounds
 from ..codec import decode_archive, expand_archive
-from ..config import CompressConfig
+from ..codec.steps import QuantSteps
+from ..config import PRESETS, CompressConfig
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
 from ..views import dataset_views, evaluate, self_supervised_views
-from .encode import Coded, mirror_floor, reduce_and_encode, write_archive
+from .encode import Fitted, fit_codec, fitted_baseline, stages
 from .levels import run_levels
 from .state import LevelState
 
@@ -115,7 +116,7 @@ def compress(
     if images is not None:
         views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
                               resolution=config.eval_resolution, background=background)  # fmt: skip
-        reference = evaluate(source, views.fit, background).worst
+        reference = evaluate(source, views.fit, background, with_ssim=False).worst
         floor = reference - config.budget
     else:
         views = self_supervised_views(
@@ -130,41 +131,38 @@ def compress(
     # What the archive carries besides the scene; the same job gives the same bytes whichever door it came by.
     meta = {"input_gaussians": len(source), "sh_degree": source.sh_degree,
             "coordinate_convention": COORDINATE_CONVENTION}  # fmt: skip
-    max_levels = config.max_levels if config.use_mirrors else 0
-    state, records = run_levels(
-        source,
-        views,
-        config=replace(config, max_levels=max_levels),
-        floor=mirror_floor(config, floor, reference),
-        extent=radius,
-        report=report,
-        checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
-        fingerprint=_fingerprint(source, config, images),
-        size_of=(lambda st: len(write_archive(st, meta))) if not config.quantized else None,
-    )
+    start = QuantSteps().scaled(PRESETS[config.preset].step_scale) if config.quantized else None
+    fits: dict[int, Fitted] = {}
+
+    def fit(state: LevelState, psnr: float) -> Fitted:
+        """The state's archive at the floor, remembered for the state the levels end on."""
+        fits[id(state)] = fit_codec(state, views.fit, background, floor=floor, psnr_before=psnr, start=start,
+                                    meta=meta, name=config.preset, should_stop=report.should_stop)  # fmt: skip
+        return fits[id(state)]
 
     t0 = time.perf_counter()
-    report("encode", 0.0, "encoding archive")
+    report("encode", 0.0, "fitting the plain codec")
+    plain_state = LevelState.plain(source)
+    plain = fit(plain_state, reference)
+    report.timed("encode", time.perf_counter() - t0)
+    max_levels = config.max_levels if config.use_mirrors else 0
+    t0 = time.perf_counter()
+    state, psnr, records = run_levels(
+        source, views, config=replace(config, max_levels=max_levels), floor=floor, reference=reference,
+        extent=radius, judge=lambda st, p: len(fit(st, p).archive), plain_bytes=len(plain.archive),
+        steps=plain.steps, report=report,
+        checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
+        fingerprint=_fingerprint(source, config, images),
+    )  # fmt: skip
+    report.timed("levels", time.perf_counter() - t0)
 
-    def encode(levels: LevelState) -> Coded:
-        return reduce_and_encode(
-            LevelState.plain(source), levels, views.train, views.fit, background, config=config, floor=floor,
-            reference=reference, extent=radius, meta=meta, report=report,
-        )  # fmt: skip
-
-    coded = encode(state)
-    plain_codec_bytes = None
-    if state.normals.shape[0] and config.quantized:
-        # Mirrors spend budget the quantiser could have spent: keep them only if the whole result is smaller than
-        # the same stages without them (a scene is never made worse than the plain codec makes it).
-        report("encode", 0.5, "encoding without mirrors, to compare")
-        plain = encode(LevelState.plain(source))
-        plain_codec_bytes = len(plain.archive)
-        if plain_codec_bytes <= len(coded.archive):
-            coded = plain
-            why = "within budget, but the plain codec alone made a smaller archive"
-            records = [replace(r, accepted=False, reason=why) if r.accepted else r for r in records]
-    archive = coded.archive
+    t0 = time.perf_counter()
+    report("encode", 0.5, "encoding archive")
+    fitted = plain if state is plain_state else fits.get(id(state)) or fit(state, psnr)
+    archive = fitted.archive
+    baseline = fitted_baseline(plain_state, fitted, meta)
+    stage_reports = stages(plain_state, state, fitted, reference=reference, mirrored_psnr=psnr, meta=meta,
+                           seconds=report.seconds)  # fmt: skip
     report.timed("encode", time.perf_counter() - t0)
 
     t0 = time.perf_counter()
@@ -172,21 +170,21 @@ def compress(
     decoded = expand_archive(decode_archive(archive)).to(device)
     fidelity = evaluate(decoded, views.eval, background)
     fitting = evaluate(decoded, views.fit, background)
-    psnr_input = evaluate(source, views.eval, background).worst if images is not None else math.inf
+    psnr_input = evaluate(source, views.eval, background, with_ssim=False).worst if images is not None else math.inf
     report.timed("evaluate", time.perf_counter() - t0)
 
     result = Report(
         scene=name,
         input_bytes=input_bytes,
         output_bytes=len(archive),
-        baseline_bytes=len(coded.baseline),
-        plain_codec_bytes=plain_codec_bytes,
+        baseline_bytes=len(baseline),
+        plain_codec_bytes=len(plain.archive) if state is not plain_state else None,
         ratio_to_ply=input_bytes / len(archive) if input_bytes else None,
-        ratio_to_baseline=len(coded.baseline) / len(archive),
-        gaussians=GaussianCounts(len(source), len(coded.state.stored), len(decoded)),
+        ratio_to_baseline=len(baseline) / len(archive),
+        gaussians=GaussianCounts(len(source), len(fitted.state.stored), len(decoded)),
         levels=tuple(records),
-        stages=tuple(coded.stages),
-        codec=coded.codec,
+        stages=tuple(stage_reports),
+        codec=fitted.codec,
         fidelity=fidelity,
         fitting=fitting,
         psnr_input=psnr_input,

@@ -1,44 +1,40 @@
-"""The stages after the mirror levels: pruning, SH reduction, quantisation, entropy coding, and their accounting.
+"""From a state to its archive: the codec fitted to the floor, checked against real renders, and its accounting.
 
-Each stage reports what it saved in bytes and cost in dB (held-out PSNR), so a report shows where the size went:
-mirrors, pruning and SH reduction are measured on the lossless (float32 + zstd) archive of what they leave;
-quantisation against the fixed-width size of its symbols (what a plain quantiser would store); entropy coding is
-the final archive. Preset ``lossless`` runs no reduction and stores float32, as the archive always did.
-
-Quantised presets store each rotation in its canonical frame (``codec.frames``) and give the SH palette the render
-weight of every SH row (``with_sh_weights``). Pruning and SH reduction spend budget the quantiser could spend: when
-they removed anything, the steps are also fitted straight after the mirrors, and the reductions stay only if the
-archive with them is the smaller (their records then say ``kept: false``).
+``fit_codec`` predicts (``budget.RateDistortion`` over ``sensitivity``), encodes, decodes and renders the decoded
+archive on the fitting views; where the measured error differs from the prediction, the allowed error is rescaled by
+their ratio and the choice made again. The archive kept is the smallest whose decode holds the floor. Quantised
+archives store each rotation in its canonical frame (``codec.frames``). Preset ``lossless`` stores float32.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
-from typing import Any
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
-import numpy as np
+import torch
 from torch import Tensor
 
-from ..codec import ArchiveContents, coding_order, encode_archive
+from ..codec import ArchiveContents, coding_order, decode_archive, encode_archive, expand_archive
 from ..codec.frames import canonical_frames
+from ..codec.masks import MASKS
 from ..codec.order import grid_cells
-from ..codec.palette import RowWeights
 from ..codec.registry import ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
-from ..config import PRESETS, CompressConfig
+from ..metrics import mse_to_psnr, psnr_to_mse
 from ..mirror import Plane
 from ..report import CodecReport, StageReport
-from ..views import evaluate
-from .budget import archive_bytes, extent_of, fit_steps, split_budget
-from .prune import contributions, prune, reduce_sh
+from ..views import View, evaluate
+from .budget import Choice, RateDistortion
+from .sensitivity import sensitivity
 from .state import LevelState
 
-
-def preset_steps(config: CompressConfig) -> QuantSteps:
-    """The preset's starting steps; the search then scales them to spend the preset's budget."""
-    return QuantSteps().scaled(PRESETS[config.preset].step_scale)
+_LOSSLESS = CodecReport("lossless", None, None, 0)
+MAX_CHECKS = 4  # renders of a decoded archive per fit
+PRUNE_SHARES = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4)  # shares of the stored set pruning tries, rendered
+_AIM = 0.9  # of the allowed error the first choice aims at: the model errs by tens of percent either way
+_CLOSE = 0.8  # a passing archive that measures at least this share of the allowed error is kept without retrying
 
 
 def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lossless") -> bytes:
@@ -50,168 +46,169 @@ def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lo
     return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
 
 
-def mirror_floor(config: CompressConfig, floor: float, reference: float) -> float:
-    """The floor the mirror levels are judged against: all of it for ``lossless``, their share otherwise."""
-    return floor if not config.quantized else split_budget(floor, reference)["mirrors"]
-
-
-def _fixed_width_bytes(state: LevelState, steps: QuantSteps) -> int:
-    """Bytes of the quantised symbols at the narrowest fixed width per attribute (no entropy coding)."""
-    stored = state.stored.detach().to("cpu")
-    extent = extent_of(stored)
-    total_bits = 0.0
-    grids = {
-        "means": steps.position * max(extent, 1e-12), "scales": steps.scale, "sh_dc": steps.dc,
-        "quats": steps.rotation, "opacities": steps.opacity,
-    }  # fmt: skip
-    for name, step in grids.items():
-        values = stored.tensors()[name].numpy().astype(np.float64)
-        if name == "opacities":
-            values = 1.0 / (1.0 + np.exp(-values))
-        span = float(values.max() - values.min()) if values.size else 0.0
-        per = values[0].size if values.ndim > 1 else 1
-        if name == "quats":
-            per, span = 3, 2.0**0.5  # three of four components in [-1/sqrt2, 1/sqrt2], plus a 2-bit index
-            total_bits += 2 * len(values)
-        total_bits += len(values) * per * math.ceil(math.log2(span / step + 2))
-    rest = stored.sh_rest.numpy()
-    # A palette stores its entries once and an index per Gaussian; per coefficient, the bands each Gaussian keeps.
-    entries = min(steps.sh_palette, len(stored)) if steps.sh_palette else 0
-    for lvl, step in zip(range(1, stored.sh_degree + 1), steps.sh):
-        band = rest[:, lvl * lvl - 1 : (lvl + 1) ** 2 - 1, :]
-        stored_values = band[np.abs(band).reshape(len(band), -1).max(axis=1) * 2 >= step]
-        if stored_values.size:
-            span = float(stored_values.max() - stored_values.min())
-            count = entries * band[0].size if entries else stored_values.size
-            total_bits += count * math.ceil(math.log2(span / step + 2))
-    if stored.sh_degree:
-        total_bits += len(stored) * (math.ceil(math.log2(entries + 1)) if entries else 2)
-    return int(total_bits // 8) + state.bits.shape[1] * ((len(stored) + 7) // 8)
-
-
-@dataclass
-class Coded:
-    """The stored state after every stage, its archive, the codec alone on the input (baseline), the accounting."""
-
-    state: LevelState
-    archive: bytes
-    baseline: bytes
-    codec: CodecReport
-    stages: list[StageReport] = field(default_factory=list)
-
-
-def _stage(
-    name: str, before: int, after: int, psnr_before: float, psnr_after: float, seconds: float, **extra: Any
-) -> StageReport:
-    cost = psnr_before - psnr_after if math.isfinite(psnr_before) and math.isfinite(psnr_after) else None
-    return StageReport(name, before, after, before - after, psnr_after, cost, seconds, **extra)
-
-
-_LOSSLESS = CodecReport("lossless", None, None, 0)
-
-
-def _canonical(state: LevelState) -> LevelState:
+def canonical(state: LevelState) -> LevelState:
     """``state`` with each stored rotation in its frame closest to the identity (``codec.frames``)."""
     return LevelState(canonical_frames(state.stored.detach()), state.normals, state.offsets, state.bits)
 
 
-def with_sh_weights(start: QuantSteps, state: LevelState, train: list) -> QuantSteps:
-    """``start`` with the render weight of each SH row of ``state`` over the training views, for the SH palette."""
-    if not state.stored.sh_degree:
-        return start
-    weights = contributions(state, [view.camera for view in train]).numpy()
-    return replace(start, sh_weights=RowWeights.of(state.stored.sh_rest.detach().cpu().numpy(), weights))
+@dataclass
+class Fitted:
+    """A state's archive: the state as stored (after reductions), the bytes, and how they were found."""
+
+    state: LevelState
+    archive: bytes
+    psnr: float  # measured on the fitting views, the worse of full frame and object pixels
+    codec: CodecReport
+    steps: QuantSteps | None = None  # None: float32
+    writer: ArchiveCodec | None = None
+    choice: Choice | None = None
+    unreduced: LevelState | None = None  # the state before pruning and SH reduction (canonical frames)
+    kept: Tensor | None = None  # [M] indices of ``unreduced`` that pruning kept
+    pruned: float = 0.0  # the measured growth of the fitting MSE from the Gaussians left out
+    removed: int = 0  # Gaussians left out
+    dropped_bands: int = 0  # SH bands left out, over every Gaussian
+    tries: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
 
 
-def _undone(record: StageReport, psnr: float) -> StageReport:
-    """A reduction's record once the archive without it was the smaller: it saved nothing and cost nothing; the
-    fitting PSNR is ``psnr``, that of the state before the reductions, and ``psnr_if_kept`` what it measured."""
-    return replace(record, bytes_after=record.bytes_before, saved_bytes=0, psnr_after=psnr,
-                   psnr_if_kept=record.psnr_after, cost_db=0.0, kept=False,
-                   reason="the archive quantised without pruning and SH reduction was smaller")  # fmt: skip
+def _without(state: LevelState, keep: Tensor) -> LevelState:
+    keep = keep.to(state.stored.device)
+    return LevelState(state.stored.select(keep), state.normals, state.offsets, state.bits[keep.to(state.bits.device)])
 
 
-def reduce_and_encode(
-    source_state: LevelState,
+def _excess(state: LevelState, fit: Sequence[View], background: Tensor, psnr_before: float) -> float:
+    """Growth of the fitting MSE from ``psnr_before`` to ``state``'s renders."""
+    return psnr_to_mse(evaluate(state.expanded(), fit, background, with_ssim=False).worst) - psnr_to_mse(psnr_before)
+
+
+def prune(
+    state: LevelState, rd: RateDistortion, fit: Sequence[View], background: Tensor, *, allowed: float,
+    psnr_before: float, should_stop=None,  # noqa: ANN001
+) -> tuple[Tensor, float]:
+    """How many of the Gaussians the renders miss least to leave out: for shares 1/64 .. 1/4 of the stored set,
+    the error of their absence is rendered (their errors add up coherently, so no model predicts it), the codec
+    priced on what is left of the budget, and the share with the fewest predicted bits kept. Returns the keep mask
+    [N] and the measured error."""
+    n = len(state.stored)
+    order = rd.prune_order()
+    keep_all = torch.ones(n, dtype=torch.bool)
+    best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
+    for share in PRUNE_SHARES:
+        if should_stop is not None and should_stop():
+            break
+        keep = keep_all.clone()
+        keep[order[: int(share * n)]] = False
+        removed = _excess(_without(state, keep), fit, background, psnr_before)
+        if removed >= 0.5 * allowed:
+            break  # leaving out more only takes budget the quantiser needs
+        bits = rd.choose(_AIM * allowed - removed, keep=keep).bits
+        if bits < best[0]:
+            best = (bits, keep, removed)
+    return best[1], best[2]
+
+
+def fit_codec(
     state: LevelState,
-    train: list,
-    test: list,
+    fit: Sequence[View],
     background: Tensor,
     *,
-    config: CompressConfig,
     floor: float,
-    reference: float,
-    extent: float,
+    psnr_before: float,
+    start: QuantSteps | None,
     meta: dict,
-    report,  # noqa: ANN001 - pipeline._Reporter
-) -> Coded:
-    """Run pruning, SH reduction and quantisation on ``state`` (after the mirrors) within the shared budget."""
+    name: str,
+    should_stop=None,  # noqa: ANN001 - Callable[[], bool], checked between renders
+) -> Fitted:
+    """The smallest archive of ``state`` whose decode keeps ``floor`` on ``fit``; ``psnr_before`` is ``state``'s
+    own. ``start`` None, or no room under the floor: float32 (lossless)."""
     t0 = time.perf_counter()
-    input_bytes = len(write_archive(source_state, meta))
-    mirrored_bytes = len(write_archive(state, meta)) if state.normals.shape[0] else input_bytes
-    psnr = evaluate(state.expanded(), test, background).worst if state.normals.shape[0] else reference
-    stages = [_stage("mirrors", input_bytes, mirrored_bytes, reference, psnr, time.perf_counter() - t0)]
-    if not config.quantized:
-        archive = write_archive(state, meta)
-        stages.append(_stage("entropy_coding", mirrored_bytes, len(archive), psnr, psnr, 0.0))
-        return Coded(state, archive, write_archive(source_state, meta), _LOSSLESS, stages)
+    allowed = psnr_to_mse(floor) - psnr_to_mse(psnr_before)
+    if start is None or not math.isfinite(floor) or allowed <= 0:
+        return Fitted(state, write_archive(state, meta), psnr_before, _LOSSLESS, seconds=time.perf_counter() - t0)
+    state = canonical(state)
+    rd = RateDistortion(state.stored, sensitivity(state, fit, background), start)
+    keep, pruned = prune(state, rd, fit, background, allowed=allowed, psnr_before=psnr_before,
+                         should_stop=should_stop)  # fmt: skip
+    best: Fitted | None = None
+    target, tries = _AIM * allowed - pruned, []
+    for _ in range(MAX_CHECKS):
+        if should_stop is not None and should_stop():
+            break
+        choice = rd.choose(target, keep=keep)
+        if choice.error > target:
+            break  # nothing quantised fits: float32 below
+        kept, stored = rd.apply(choice)
+        candidate = LevelState(stored, state.normals, state.offsets, state.bits[kept.to(state.bits.device)])
+        codec = ArchiveCodec(name, {**choice.codecs, "bits": MASKS})
+        archive = write_archive(candidate, meta, codec)
+        decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
+        measured = evaluate(decoded, fit, background, with_ssim=False).worst
+        excess = psnr_to_mse(measured) - psnr_to_mse(psnr_before)
+        tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
+                      "psnr": measured, "bytes": len(archive)})  # fmt: skip
+        if measured >= floor and (best is None or len(archive) < len(best.archive)):
+            dropped = 0
+            if choice.degrees is not None:
+                dropped = int((stored.sh_degree - choice.degrees[choice.keep]).clamp_min(0).sum())
+            steps = rd.steps(choice)
+            best = Fitted(candidate, archive, measured, CodecReport(name, steps.report(), floor, 0), steps, codec,
+                          choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
+                          dropped_bands=dropped)  # fmt: skip
+            if excess >= _CLOSE * allowed:
+                break
+        # Rescale the codec's model by what the renders measured beyond the pruning, aiming again at ``_AIM``.
+        ratio = max(excess - pruned, 1e-30) / max(choice.error, 1e-30)
+        aim = min(max((_AIM * allowed - pruned) / ratio, target / 8.0), target * 8.0)
+        if abs(aim / target - 1.0) < 0.03:
+            break
+        target = aim
+    if best is None:
+        best = Fitted(state, write_archive(state, meta), psnr_before, _LOSSLESS)
+    best.tries, best.seconds = tries, time.perf_counter() - t0
+    best.codec = CodecReport(best.codec.name, best.codec.steps, best.codec.floor, len(tries))
+    return best
 
-    floors = split_budget(floor, reference)
-    mirrored, mirrored_psnr = state, psnr
-    before_bytes = mirrored_bytes
-    for name, run in (
-        ("pruning", lambda st: prune(st, train, test, background, floor=floors["pruning"], extent=extent,
-                                     iterations=config.iterations // 4)),
-        ("sh_reduction", lambda st: reduce_sh(st, train, test, background, floor=floors["sh_reduction"])),
-    ):  # fmt: skip
-        t0 = time.perf_counter()
-        report("encode", 0.0, f"{name.replace('_', ' ')}")
-        result = run(state)
-        if result is None:
-            stages.append(_stage(name, before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0, removed=0))
-            continue
-        state = result.state
-        after_bytes = len(write_archive(state, meta))
-        stages.append(_stage(name, before_bytes, after_bytes, psnr, result.psnr, time.perf_counter() - t0,
-                             removed=result.removed, threshold=result.threshold))  # fmt: skip
-        before_bytes, psnr = after_bytes, result.psnr
-        report.timed(name, time.perf_counter() - t0)
 
-    t0 = time.perf_counter()
-    report("encode", 0.3, "fitting quantisation steps")
-    quantization_floor = floors["quantization"]
-    reduced, exact = state is not mirrored, state
-    state = _canonical(state)
-    start = with_sh_weights(preset_steps(config), state, train)
-    fit = fit_steps(state, test, background, floor=quantization_floor, start=start, psnr_before=psnr)
-    if reduced:
-        # Pruning and SH reduction spend budget the quantiser could have spent: they stay only if the archive with
-        # them is smaller than the one quantised straight after the mirrors (playbot 125k: SH reduction cost 25%
-        # of the error budget and the archive came out larger).
-        report("encode", 0.6, "fitting quantisation steps without pruning and SH reduction, to compare")
-        direct = _canonical(mirrored)
-        direct_fit = fit_steps(direct, test, background, floor=quantization_floor,
-                               start=with_sh_weights(preset_steps(config), direct, train),
-                               psnr_before=mirrored_psnr)  # fmt: skip
-        if direct_fit is not None and (
-            fit is None or archive_bytes(direct.stored, direct_fit.steps) < archive_bytes(state.stored, fit.steps)
-        ):
-            state, exact, fit, psnr, before_bytes = direct, mirrored, direct_fit, mirrored_psnr, mirrored_bytes
-            stages = [_undone(st, psnr) if st.stage in ("pruning", "sh_reduction") else st for st in stages]
-    report.timed("quantize", time.perf_counter() - t0)
-    if fit is None:  # nothing lossy fits the budget that is left: store the attributes exactly
-        state = exact
-        archive = write_archive(state, meta)
-        stages.append(_stage("quantization", before_bytes, before_bytes, psnr, psnr, time.perf_counter() - t0))
-        stages.append(_stage("entropy_coding", before_bytes, len(archive), psnr, psnr, 0.0))
-        return Coded(state, archive, write_archive(source_state, meta), _LOSSLESS, stages)
-    codec = fit.steps.archive_codec(extent_of(state.stored), config.preset)
-    fixed = _fixed_width_bytes(state, fit.steps)
-    stages.append(_stage("quantization", before_bytes, fixed, psnr, fit.psnr, time.perf_counter() - t0))
-    t0 = time.perf_counter()
-    archive = write_archive(state, meta, codec)
-    stages.append(_stage("entropy_coding", fixed, len(archive), fit.psnr, fit.psnr, time.perf_counter() - t0))
-    report = CodecReport(config.preset, fit.steps.report(), floors["quantization"], len(fit.tries))
-    plain_codec = replace(fit.steps, sh_weights=None).archive_codec(extent_of(source_state.stored), config.preset)
-    baseline = write_archive(_canonical(source_state), meta, plain_codec)
-    return Coded(state, archive, baseline, report, stages)
+def fitted_baseline(plain: LevelState, fitted: Fitted, meta: dict) -> bytes:
+    """The codec alone on the input: the plain state written by the archive's own codec, nothing reduced."""
+    if fitted.writer is None:
+        return write_archive(plain, meta)
+    return write_archive(canonical(plain), meta, fitted.writer)
+
+
+def stages(
+    source: LevelState, mirrored: LevelState, fitted: Fitted, *, reference: float, mirrored_psnr: float, meta: dict,
+    seconds: dict[str, float],
+) -> list[StageReport]:
+    """Where the size went, each stage measured on archives: the mirrors on float32 archives, then quantisation,
+    pruning and SH reduction with the final codec. The codec chose all three at one price; the PSNR after the
+    middle two is the model's prediction (``predicted``), the first and last are rendered."""
+    lossless_in = len(write_archive(source, meta))
+    lossless_mirrored = len(write_archive(mirrored, meta)) if mirrored.normals.shape[0] else lossless_in
+    out = [_stage("mirrors", lossless_in, lossless_mirrored, reference, mirrored_psnr, seconds.get("levels", 0.0))]
+    final = len(fitted.archive)
+    if fitted.choice is None or fitted.unreduced is None or fitted.writer is None or fitted.kept is None:
+        out.append(_stage("entropy_coding", lossless_mirrored, final, mirrored_psnr, fitted.psnr, fitted.seconds))
+        return out
+    base = psnr_to_mse(mirrored_psnr)
+    errors = fitted.choice.errors
+    errors = {**errors, "pruning": fitted.pruned}
+    predicted = lambda *parts: mse_to_psnr(base + sum(errors[p] for p in parts))  # noqa: E731
+    unreduced = fitted.unreduced
+    pruned = LevelState(unreduced.stored.select(fitted.kept), unreduced.normals, unreduced.offsets,
+                        unreduced.bits[fitted.kept.to(unreduced.bits.device)])  # fmt: skip
+    quantised = len(write_archive(unreduced, meta, fitted.writer))
+    pruned_bytes = len(write_archive(pruned, meta, fitted.writer)) if fitted.removed else quantised
+    out.append(_stage("quantization", lossless_mirrored, quantised, mirrored_psnr, predicted("codec"),
+                      fitted.seconds, predicted=True))  # fmt: skip
+    out.append(_stage("pruning", quantised, pruned_bytes, predicted("codec"), predicted("codec", "pruning"), 0.0,
+                      removed=fitted.removed, predicted=True))  # the pruning's own error was rendered  # fmt: skip
+    out.append(_stage("sh_reduction", pruned_bytes, final, predicted("codec", "pruning"), fitted.psnr, 0.0,
+                      removed=fitted.dropped_bands))  # fmt: skip
+    return out
+
+
+def _stage(name: str, before: int, after: int, psnr_before: float, psnr_after: float, seconds: float,
+           **extra: int | bool) -> StageReport:  # fmt: skip
+    cost = psnr_before - psnr_after if math.isfinite(psnr_before) and math.isfinite(psnr_after) else None
+    return StageReport(name, before, after, before - after, psnr_after, cost, seconds, **extra)  # type: ignore[arg-type]

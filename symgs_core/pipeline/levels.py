@@ -1,8 +1,16 @@
-"""The level loop: detect a mirror in the working set, drop its right side, fine-tune, and keep it only if the
-held-out PSNR stays above the floor; otherwise roll back and stop. The scene decides how many levels it gets."""
+"""The level loop: detect a mirror in the working set, drop its right side, fine-tune what it changed, and keep it only
+if the archive with it is smaller than the best archive so far at the same fidelity.
+
+Each level is judged by bytes: the state after the fine-tune must hold the floor on the fitting views, and then its
+whole archive (``judge``: the codec fitted to what the floor leaves, quantisation, pruning, SH bands) must be smaller
+than the best prefix of levels so far, the plain codec's to begin with. A level that is not smaller is rolled back and
+the next candidate tried; the search stops at the first level none of whose candidates pays. The scene decides how
+many levels it gets, and a scene without symmetry keeps the plain codec's archive.
+"""
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
@@ -10,14 +18,16 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
+from scipy.spatial import cKDTree
 
+from ..codec.steps import QuantSteps
 from ..config import CompressConfig
-from ..mirror import Plane
+from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate
 from .gating import colour_mismatch, gated
-from .optimize import optimize_level
+from .optimize import halo, optimize_level
 from .state import LevelState
 
 # Colour-agreement gates (largest RGB channel difference) tried after the geometric membership, loosest first.
@@ -28,6 +38,45 @@ MIN_SAVING = 0.02
 TUNE_GAIN = 3.0
 # Fine-tunes tried per level before the level is given up.
 MAX_ATTEMPTS = 2
+# The fine-tune goes on in stretches of a quarter of ``iterations`` while each stretch gains at least this much.
+MIN_GAIN_DB = 0.05
+# Neighbours within this many local spacings of a mirror's two sides move with them in its fine-tune.
+HALO_SPACINGS = 3.0
+
+
+@dataclass(frozen=True)
+class Membership:
+    """One way to apply a detected mirror: the plane, the Gaussians reflected (left) and dropped (right), and the
+    colour-agreement gate that produced it (None: geometry alone)."""
+
+    normal: torch.Tensor  # [3]
+    offset: float
+    left: torch.Tensor  # [L] indices into the working set
+    right: torch.Tensor  # [R]
+    votes: float
+    coverage: float
+    gate: float | None
+
+
+def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor,
+                    right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """``left`` and ``right`` with the pairs whose earlier-level bits differ taken out.
+
+    A dropped (right) Gaussian is replaced at decode by the reflection of the left one covering it, and that
+    reflection inherits its source's bits: where the two disagree on an earlier level, the decode would lose a copy
+    the dropped Gaussian had, or make one it never had. So a right Gaussian is dropped only when the left Gaussian
+    whose reflection lands nearest carries the same earlier bits, and a left Gaussian is reflected only when the
+    right one nearest its reflection is dropped."""
+    if state.bits.shape[1] == 0 or left.numel() == 0 or right.numel() == 0:
+        return left, right
+    with torch.no_grad():
+        mirrored = reflect(state.stored.select(left).detach().to("cpu"), normal.cpu(), offset).means.numpy()
+    dropped = state.stored.means.detach()[right.to(state.stored.device)].cpu().numpy()
+    _, nearest_left = cKDTree(mirrored).query(dropped, k=1)
+    _, nearest_right = cKDTree(dropped).query(mirrored, k=1)
+    bits = state.bits.cpu()
+    agree = (bits[right.cpu()] == bits[left.cpu()][torch.from_numpy(nearest_left)]).all(dim=1)
+    return gated(left, right, ~agree * 1.0, torch.from_numpy(nearest_right).reshape(-1), 0.5)
 
 
 def apply_mirror(
@@ -54,98 +103,33 @@ def apply_mirror(
     )
 
 
-@dataclass(frozen=True)
-class Membership:
-    """One way to apply a detected mirror: the plane, the Gaussians reflected (left) and dropped (right), and the
-    colour-agreement gate that produced it (None: geometry alone)."""
-
-    normal: torch.Tensor  # [3]
-    offset: float
-    left: torch.Tensor  # [L] indices into the working set
-    right: torch.Tensor  # [R]
-    votes: float
-    coverage: float
-    gate: float | None
-
-
 def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 - detect.Mirror
-    """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first."""
+    """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first; every
+    one with its earlier-level bits made consistent (``consistent_bits``)."""
     normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
     offset = float(mirror.plane.offset)
-    base = Membership(normal, offset, mirror.left, mirror.right, float(mirror.votes), float(mirror.coverage), None)
-    mismatch, nearest = colour_mismatch(state.stored, normal, offset, mirror.left, mirror.right)
+    left, right = consistent_bits(state, normal, offset, mirror.left, mirror.right)
+    coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
+    base = Membership(normal, offset, left, right, float(mirror.votes), coverage, None)
+    mismatch, nearest = colour_mismatch(state.stored, normal, offset, left, right)
     out = [base]
     for gate in GATES:
-        left, right = gated(mirror.left, mirror.right, mismatch, nearest, gate)
-        if right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
+        gated_left, gated_right = gated(left, right, mismatch, nearest, gate)
+        if gated_right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
             continue
-        coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
-        out.append(Membership(normal, offset, left, right, base.votes, coverage, gate))
+        coverage = (gated_left.numel() + gated_right.numel()) / max(len(state.stored), 1)
+        out.append(Membership(normal, offset, gated_left, gated_right, base.votes, coverage, gate))
     return out
 
 
-def try_level(
-    state: LevelState,
-    membership: Membership,
-    views: ViewSet,
-    *,
-    level: int,
-    config: CompressConfig,
-    floor: float,
-    extent: float,
-    report,  # noqa: ANN001 - pipeline._Reporter
-    psnr_before: float | None = None,
-) -> tuple[LevelState, LevelReport]:
-    """Apply one membership of a mirror, fine-tune and judge it. Returns the candidate state and its record."""
-    t0 = time.perf_counter()
-    candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
-    if psnr_before is None:
-        psnr_before = evaluate(candidate.expanded(), views.fit, views.background).worst
-
-    def on_step(step: int, loss: float) -> None:
-        if step % 10 == 0:
-            report(
-                "levels",
-                (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
-                f"level {level}: step {step}/{config.iterations} loss {loss:.4f}",
-                level,
-            )
-
-    torch.manual_seed(config.seed + 1000 * (level + 1))
-    tuned = optimize_level(
-        candidate,
-        views.train,
-        views.background,
-        iterations=config.iterations,
-        extent=extent,
-        seed=config.seed + level,
-        should_stop=report.should_stop,
-        on_step=on_step,
-    )
-    after = evaluate(tuned.expanded(), views.fit, views.background)
-    if after.worst < psnr_before:  # the fine-tune must pay for itself too: exact twins need none
-        tuned = candidate.detach()
-        after = evaluate(tuned.expanded(), views.fit, views.background)
-    psnr_after, ssim_after = after.worst, after.ssim
-    accepted = psnr_after >= floor
-    record = LevelReport(
-        level=level,
-        normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]), float(tuned.normals[-1, 2])),
-        offset=float(tuned.offsets[-1]),
-        votes=membership.votes,
-        left=int(membership.left.numel()),
-        right=int(membership.right.numel()),
-        coverage=membership.coverage,
-        gate=membership.gate,
-        psnr_before=psnr_before,
-        psnr_after=psnr_after,
-        ssim=ssim_after,
-        stored_after=len(tuned.stored),
-        seconds=time.perf_counter() - t0,
-        accepted=accepted,
-        reason="within budget" if accepted else f"held-out PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB",
-    )
-    return tuned, record
+def _spacing(means: torch.Tensor) -> float:
+    """Median distance to the nearest neighbour over a sample of at most 20,000 points."""
+    points = means.detach().cpu().numpy()
+    if len(points) < 2:
+        return math.inf
+    sample = points[:: max(1, len(points) // 20_000)]
+    distances, _ = cKDTree(points).query(sample, k=2)
+    return float(max(float(torch.tensor(distances[:, 1]).median()), 1e-12))
 
 
 def plan_attempts(
@@ -160,14 +144,61 @@ def plan_attempts(
     scored = []
     for m in worth:
         candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
-        scored.append((m, evaluate(candidate.expanded(), views.fit, views.background).worst))
+        scored.append((m, evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst))
     hopeful = [(m, p) for m, p in scored if p >= floor - TUNE_GAIN]
     if not hopeful and scored:  # none close enough: the strictest still gets its chance
         hopeful = scored[-1:]
     return hopeful[:MAX_ATTEMPTS]
 
 
-def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool) -> None:
+Judge = Callable[[LevelState, float], int]  # (state, its fitting PSNR) -> bytes of its archive at the floor
+
+
+def tune(
+    state: LevelState,
+    candidate: LevelState,
+    membership: Membership,
+    views: ViewSet,
+    *,
+    level: int,
+    config: CompressConfig,
+    extent: float,
+    spacing: float,
+    steps: QuantSteps | None,
+    report,  # noqa: ANN001 - pipeline._Reporter
+) -> tuple[LevelState, float, int]:
+    """Fine-tune what ``membership`` changed in ``candidate`` (its left side and the neighbours of both sides, and
+    the new plane) in stretches while they gain; returns the tuned state, its fitting PSNR and the steps run."""
+    region = torch.cat([membership.left, membership.right])
+    trainable = halo(state.stored, region, candidate.stored, radius=HALO_SPACINGS * spacing)
+    start = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
+    best = {"psnr": start}
+
+    def keep_going(so_far: LevelState) -> bool:
+        psnr = evaluate(so_far.expanded(), views.fit, views.background, with_ssim=False).worst
+        gained = psnr - best["psnr"]
+        best["psnr"] = max(best["psnr"], psnr)
+        return gained >= MIN_GAIN_DB
+
+    def on_step(step: int, loss: float) -> None:
+        if step % 10 == 0:
+            report("levels", (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
+                   f"level {level}: step {step}/{config.iterations} loss {loss:.4f}", level)  # fmt: skip
+
+    torch.manual_seed(config.seed + 1000 * (level + 1))
+    tuned, run = optimize_level(
+        candidate, views.train, views.background, iterations=config.iterations, extent=extent, trainable=trainable,
+        steps=steps, seed=config.seed + level, check_every=max(config.iterations // 4, 1), keep_going=keep_going,
+        should_stop=report.should_stop, on_step=on_step,
+    )  # fmt: skip
+    psnr = evaluate(tuned.expanded(), views.fit, views.background, with_ssim=False).worst
+    if psnr < start:  # the fine-tune must pay for itself too: exact twins need none
+        return candidate.detach(), start, run
+    return tuned, psnr, run
+
+
+def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool,
+                     best_bytes: int) -> None:  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "fingerprint": fingerprint,
@@ -177,6 +208,7 @@ def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: l
         "bits": state.bits.cpu(),
         "records": [asdict(r) for r in records],
         "done": done,
+        "best_bytes": best_bytes,
     }
     tmp = path.with_suffix(".tmp")
     torch.save(payload, tmp)
@@ -190,11 +222,11 @@ def _load_checkpoint(path: Path, fingerprint: str, device: torch.device):  # noq
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception:  # noqa: BLE001 - an unreadable checkpoint is recomputed, never trusted
         return None
-    if payload.get("fingerprint") != fingerprint:
+    if payload.get("fingerprint") != fingerprint or "best_bytes" not in payload:
         return None
     state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
     records = [LevelReport(**{**r, "normal": tuple(r["normal"])}) for r in payload["records"]]
-    return state, records, bool(payload["done"])
+    return state, records, bool(payload["done"]), int(payload["best_bytes"])
 
 
 def run_levels(
@@ -203,25 +235,32 @@ def run_levels(
     *,
     config: CompressConfig,
     floor: float,
+    reference: float,
     extent: float,
+    judge: Judge,
+    plain_bytes: int,
+    steps: QuantSteps | None,
     report,  # noqa: ANN001 - pipeline._Reporter
     checkpoint: Path | None,
     fingerprint: str,
-    size_of: Callable[[LevelState], int] | None = None,
-) -> tuple[LevelState, list[LevelReport]]:
-    """Accept mirror levels while they pay for themselves; resume from ``checkpoint`` when it matches.
+) -> tuple[LevelState, float, list[LevelReport]]:
+    """Accept mirror levels while each makes the archive smaller (``judge``) at the floor than the best so far, the
+    plain codec's ``plain_bytes`` to begin with; resume from ``checkpoint`` when it matches. Returns the state, its
+    fitting PSNR and a record of every level tried.
 
-    ``size_of`` measures a state's archive where fewer Gaussians need not mean fewer bytes (a lossless archive of
-    a scene whose values sit on a grid: fine-tuned values leave it); a level must then also shrink it.
+    ``steps``: the plain codec's steps, which the fine-tunes round to (straight-through) so that what they learn
+    survives the codec (None: float32).
     """
     from ..detect import DetectConfig, detect
 
-    state, records, done = LevelState.plain(source), [], False
-    if checkpoint is not None:
-        resumed = _load_checkpoint(checkpoint, fingerprint, source.device)
-        if resumed is not None:
-            state, records, done = resumed
+    state, psnr, records, done, best_bytes = LevelState.plain(source), reference, [], False, plain_bytes
+    resumed = _load_checkpoint(checkpoint, fingerprint, source.device) if checkpoint is not None else None
+    if resumed is not None:
+        state, records, done, best_bytes = resumed
+        if state.normals.shape[0]:
+            psnr = evaluate(state.expanded(), views.fit, views.background, with_ssim=False).worst
     detect_config = replace(DetectConfig(), **{**config.detect, "max_mirrors": 1})
+    spacing = _spacing(source.means) if config.max_levels else math.inf
     while not done and state.normals.shape[0] < config.max_levels:
         level = state.normals.shape[0]
         t0 = time.perf_counter()
@@ -233,25 +272,35 @@ def run_levels(
         done = True
         for membership, psnr_before in attempts:
             t0 = time.perf_counter()
-            candidate, record = try_level(
-                state,
-                membership,
-                views,
-                level=level,
-                config=config,
-                floor=floor,
-                extent=extent,
-                report=report,
-                psnr_before=psnr_before,
-            )
+            candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
+            tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
+                                          extent=extent, spacing=spacing, steps=steps, report=report)  # fmt: skip
             report.timed("optimize", time.perf_counter() - t0)
-            if record.accepted and size_of is not None and size_of(candidate) >= size_of(state):
-                record = replace(record, accepted=False, reason="within budget, but the archive would not shrink")
-            records.append(record)
-            if record.accepted:
-                state, done = candidate, False
+            archive_bytes = None
+            if psnr_after < floor:
+                accepted_now, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
+            else:
+                t1 = time.perf_counter()
+                report("levels", (level + 1) / config.max_levels, f"level {level}: encoding to compare", level)
+                archive_bytes = judge(tuned, psnr_after)
+                report.timed("judge", time.perf_counter() - t1)
+                accepted_now = archive_bytes < best_bytes
+                reason = (f"the archive shrinks from {best_bytes:,} to {archive_bytes:,} bytes" if accepted_now else
+                          f"within the floor, but the archive ({archive_bytes:,} bytes) is not smaller than without "
+                          f"this level ({best_bytes:,} bytes)")  # fmt: skip
+            records.append(LevelReport(
+                level=level, normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]),
+                                     float(tuned.normals[-1, 2])),
+                offset=float(tuned.offsets[-1]), votes=membership.votes, left=int(membership.left.numel()),
+                right=int(membership.right.numel()), coverage=membership.coverage, psnr_before=psnr_before,
+                psnr_after=psnr_after, stored_after=len(tuned.stored), seconds=time.perf_counter() - t0,
+                accepted=accepted_now, reason=reason, gate=membership.gate, iterations=run,
+                archive_bytes=archive_bytes,
+            ))  # fmt: skip
+            if accepted_now:
+                state, psnr, best_bytes, done = tuned, psnr_after, archive_bytes, False
                 break
         if checkpoint is not None:
-            _save_checkpoint(checkpoint, fingerprint, state, records, done)
+            _save_checkpoint(checkpoint, fingerprint, state, records, done, best_bytes)
     report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")
-    return state, records
+    return state, psnr, records

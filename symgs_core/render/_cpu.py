@@ -7,7 +7,7 @@ from torch import Tensor
 
 from ..cameras import Camera
 from ..scene import GaussianScene
-from .projection import project
+from .projection import Projection, project
 from .rasterize import TILE_SIZE, bin_gaussians, composite
 from .result import RenderResult
 
@@ -16,7 +16,8 @@ def render_cpu(
     scene: GaussianScene, camera: Camera, background: Tensor, sh_degree: int, tile_size: int = TILE_SIZE
 ) -> RenderResult:
     """Render on the CPU; ``background`` [3]. The image does not depend on ``tile_size`` (only the speed does)."""
-    proj = project(scene, camera, sh_degree)
+    compiled = scene.means.dtype == torch.float32 and not _differentiated(scene)
+    proj = _project_compiled(scene, camera, sh_degree) if compiled else project(scene, camera, sh_degree)
     # Depth rides along as a fourth channel so the expected depth is composited (and differentiated) with colour.
     feats = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)
     bg = torch.cat([background, background.new_zeros(1)])
@@ -35,3 +36,18 @@ def render_cpu(
             "backend": "cpu",
         },
     )
+
+
+def _differentiated(scene: GaussianScene) -> bool:
+    return torch.is_grad_enabled() and any(t.requires_grad for t in scene.tensors().values())
+
+
+def _project_compiled(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
+    """``project`` for a float32 render nobody differentiates: one compiled pass (``_project_kernel``); float64
+    scenes (the exactness tests') keep the reference."""
+    from ._project_kernel import project_fast
+
+    arrays = [t.detach().cpu().contiguous().numpy() for t in
+              (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_dc, scene.sh_rest)]  # fmt: skip
+    outs = [torch.from_numpy(a).to(scene.device) for a in project_fast(*arrays, sh_degree, camera)]
+    return Projection(*outs)

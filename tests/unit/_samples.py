@@ -19,7 +19,7 @@ from symgs_core.report import (
 )
 
 LEVEL = LevelReport(level=0, normal=(1.0, 0.0, 0.0), offset=0.5, votes=3.0, left=10, right=9, coverage=0.9,
-                    psnr_before=41.0, psnr_after=40.0, ssim=0.99, stored_after=91, seconds=1.0, accepted=True,
+                    psnr_before=41.0, psnr_after=40.0, stored_after=91, seconds=1.0, accepted=True,
                     reason="within budget")  # fmt: skip
 
 
@@ -36,3 +36,18 @@ def sample_report() -> Report:
         psnr_floor=41.6, cameras=Cameras(*cameras, disjoint=True), seconds={"load": 0.25, "levels": 2.0},
         device="cpu", config=CompressConfig.for_preset(),
     )  # fmt: skip
+
+
+def decoded_by_sections(stored, steps, extent: float):  # noqa: ANN001, ANN201 - GaussianScene, QuantSteps
+    """``stored`` as each section codec of ``steps`` encodes and decodes it on its own (no archive around)."""
+    import torch
+
+    from symgs_core.scene import GaussianScene
+
+    codecs = steps.codecs(extent)
+    out = {}
+    for name, value in stored.tensors().items():
+        array = value.detach().cpu().contiguous().numpy()
+        coded = codecs[name].encode(array)
+        out[name] = torch.from_numpy(codecs[name].decode(coded.payload, array.shape, coded.params, coded.raw_length))
+    return GaussianScene(**out)

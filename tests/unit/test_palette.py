@@ -88,7 +88,9 @@ def test_a_palette_of_one_entry_and_a_scene_without_higher_bands() -> None:
 
 @pytest.mark.parametrize("degree", [0, 2])
 def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
-    from symgs_core.pipeline.budget import extent_of, quantized
+    from symgs_core.pipeline.budget import extent_of
+
+    from ._samples import decoded_by_sections
 
     g = torch.Generator().manual_seed(degree)
     n, k = 600, (degree + 1) ** 2 - 1
@@ -106,7 +108,7 @@ def test_palette_archive_decodes_to_what_the_codecs_promise(degree: int) -> None
     contents = ArchiveContents(scene, [], torch.zeros(n, 0, dtype=torch.bool), {})
     data = encode_archive(contents, codec=name)
     decoded = decode_archive(data).stored
-    expected = quantized(scene, steps)
+    expected = decoded_by_sections(scene, steps, extent_of(scene))
     assert steps.codecs(1.0)["sh_rest"].name == "vq-sh"
     for key, value in decoded.tensors().items():
         assert torch.equal(value, expected.tensors()[key]), key

@@ -144,7 +144,7 @@ def test_scene_box_trims_floaters() -> None:
 
 def record(level: int, stored_after: int, seconds: float, accepted: bool = True, **kw) -> LevelReport:  # noqa: ANN003
     values = dict(normal=(1.0, 0.0, 0.0), offset=0.0, votes=1.0, left=10, right=10, coverage=1.0,
-                  psnr_before=30.0, psnr_after=35.0, ssim=0.9, reason="")  # fmt: skip
+                  psnr_before=30.0, psnr_after=35.0, reason="")  # fmt: skip
     values.update(kw)
     return LevelReport(level=level, stored_after=stored_after, seconds=seconds, accepted=accepted, **values)
 

@@ -12,7 +12,7 @@ from symgs_core.config import CompressConfig
 from symgs_core.detect import DetectConfig, detect
 from symgs_core.pipeline import compress, decompress
 from symgs_core.pipeline.compress import _Reporter
-from symgs_core.pipeline.levels import Membership, memberships, try_level
+from symgs_core.pipeline.levels import memberships, run_levels
 from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
 from symgs_core.synthetic import synthetic_scene
@@ -91,34 +91,26 @@ def test_asymmetric_scene_gets_no_level_and_is_no_larger_than_baseline():
     assert torch.equal(order(rows(decoded)), order(rows(scene)))
 
 
-def test_level_that_makes_things_worse_is_rolled_back(symmetric):
+def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
+    """The judge prices each level by its whole archive at the floor: a level that holds the floor but does not make
+    the archive smaller than the best so far is rolled back, and the search stops there."""
     scene = symmetric.scene
-    views = self_supervised_views(
-        scene, train=4, fit=2, eval=2, resolution=64, eval_resolution=64, background=torch.zeros(3)
-    )
-    # A wrong plane (orthogonal to the planted one) with an arbitrary split of the Gaussians.
-    side = scene.means[:, 1] > scene.means[:, 1].median()
-    wrong = Membership(
-        torch.tensor([0.0, 1.0, 0.0]),
-        0.0,
-        left=torch.nonzero(side).flatten(),
-        right=torch.nonzero(~side).flatten(),
-        votes=1.0,
-        coverage=1.0,
-        gate=None,
-    )
-    _, record = try_level(
-        LevelState.plain(scene),
-        wrong,
-        views,
-        level=0,
-        config=FAST,
-        floor=FAST.self_supervised_floor(),
-        extent=1.0,
-        report=_Reporter(None, None),
-    )
-    assert not record.accepted
-    assert record.psnr_after < FAST.self_supervised_floor()
+    views = self_supervised_views(scene, train=4, fit=2, eval=2, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    config = replace(FAST, max_levels=2, iterations=4)
+    judged = []
+
+    def run(bytes_of):  # noqa: ANN001, ANN202
+        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
+                          judge=lambda st, p: judged.append(len(st.stored)) or bytes_of(st), plain_bytes=10_000,
+                          steps=None, report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+
+    state, psnr, records = run(lambda st: 10_000)  # no smaller than the plain codec's
+    assert judged and state.normals.shape[0] == 0 and math.isinf(psnr)
+    assert records and not records[0].accepted and "not smaller" in records[0].reason
+    assert records[0].archive_bytes == 10_000
+    state, _, records = run(lambda st: 9_000 - st.normals.shape[0])  # each level shrinks it
+    assert records[0].accepted and state.normals.shape[0] >= 1 and "shrinks" in records[0].reason
 
 
 def test_colour_gates_keep_asymmetric_details_out_of_a_level(symmetric):
@@ -187,14 +179,24 @@ def test_quantised_result_is_never_larger_than_the_plain_codec(symmetric):
     assert report.fitting.worst >= report.psnr_floor - 1e-6
 
 
-def test_an_undone_reduction_reports_no_saving_and_what_it_measured() -> None:
-    from symgs_core.pipeline.encode import _stage, _undone
-
-    record = _stage("sh_reduction", 1000, 900, 60.0, 52.4, 1.5, removed=7, threshold=0.01)
-    undone = _undone(record, 60.0)
-    assert undone.kept is False and undone.reason
-    assert (undone.bytes_after, undone.saved_bytes, undone.cost_db) == (1000, 0, 0.0)
-    assert (undone.psnr_after, undone.psnr_if_kept, undone.removed) == (60.0, 52.4, 7)
+def test_the_report_accounts_for_every_stage_and_keeps_the_floor() -> None:
+    scene = synthetic_scene("global", n=900, seed=6, sh_degree=1).scene
+    config = replace(FAST, preset="balanced", psnr_budget=None, max_levels=1)
+    result = compress(scene, config=config)
+    report = result.report
+    stages = report.stages
+    assert [s.stage for s in stages] == ["mirrors", "quantization", "pruning", "sh_reduction"]
+    for before, after in zip(stages, stages[1:]):
+        assert after.bytes_before == before.bytes_after
+    assert stages[-1].bytes_after == len(result.archive) == report.output_bytes
+    assert report.fitting.worst >= report.psnr_floor == pytest.approx(config.self_supervised_floor())
+    assert stages[-1].psnr_after == pytest.approx(report.fitting.worst) and not stages[-1].predicted
+    assert stages[1].predicted
+    if not report.accepted_levels:  # what pruning removed is what the archive stores fewer of
+        assert stages[2].removed == report.gaussians.input - report.gaussians.stored
+    lossless = compress(scene, config=replace(config, preset="lossless", psnr_budget=0.0)).report
+    assert report.output_bytes * 4 < lossless.output_bytes
+    assert len(decompress(result.archive)) == report.gaussians.decoded
 
 
 def test_a_job_changes_no_process_wide_state(symmetric):

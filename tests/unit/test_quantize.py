@@ -123,7 +123,7 @@ def test_sh_rest_keeps_a_degree_per_gaussian_and_dropped_bands_cost_nothing() ->
 
 @pytest.mark.parametrize("degree", [0, 2])
 def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> None:
-    from symgs_core.pipeline.budget import quantized
+    from ._samples import decoded_by_sections
 
     scene = _random_scene(700, degree, seed=degree)
     steps = QuantSteps().scaled(3.0)
@@ -132,7 +132,7 @@ def test_quantized_archive_decodes_to_what_the_codecs_promise(degree: int) -> No
     contents = ArchiveContents(scene, [], torch.zeros(len(scene), 0, dtype=torch.bool), {"x": 1})
     data = encode_archive(contents, codec=name)
     decoded = decode_archive(data).stored
-    expected = quantized(scene, steps)
+    expected = decoded_by_sections(scene, steps, extent)
     for key, value in decoded.tensors().items():
         assert torch.equal(value, expected.tensors()[key]), key
     assert len(data) < 0.35 * len(encode_archive(contents))

@@ -1,0 +1,108 @@
+"""The codec fitted to the budget: ladders against exhaustive search, the price bisection, SH bands and pruning that
+pay, and fitted archives that keep their floor when rendered."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from symgs_core.codec import decode_archive, expand_archive
+from symgs_core.codec.steps import QuantSteps
+from symgs_core.config import floor_for_budget
+from symgs_core.metrics import psnr_to_mse
+from symgs_core.pipeline.budget import RUNGS, RateDistortion
+from symgs_core.pipeline.encode import canonical, fit_codec, write_archive
+from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
+from symgs_core.pipeline.state import LevelState
+from symgs_core.synthetic import synthetic_scene
+from symgs_core.views import evaluate, self_supervised_views
+
+FLOOR = floor_for_budget(0.3, 30.0)
+
+
+@pytest.fixture(scope="module")
+def setting():  # noqa: ANN201
+    scene = synthetic_scene("global", n=900, seed=2, sh_degree=1).scene
+    views = self_supervised_views(scene, train=1, fit=3, eval=2, resolution=16, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    state = canonical(LevelState.plain(scene))
+    return state, views, sensitivity(state, views.fit, views.background)
+
+
+def test_a_ladder_finds_the_cheapest_rung_at_every_price(setting) -> None:  # noqa: ANN001
+    state, _, weights = setting
+    rd = RateDistortion(state.stored, weights, QuantSteps())
+    for section in ("means", "quats", "scales", "sh_dc", "sh_rest"):
+        ladder = rd.ladders[section][0]
+        rungs = {k: ladder.rung(k) for k in RUNGS}
+        bits = [rungs[k].bits for k in RUNGS]
+        errors = [rungs[k].error for k in RUNGS]
+        assert errors[-1] > errors[0] and bits[-1] < bits[0], section  # coarser: fewer bits, more error
+        for mu in (1e3, 1e6, 1e9, 1e12):
+            best = min(RUNGS, key=lambda k: rungs[k].bits + mu * rungs[k].error)
+            for start in (0,) if ladder.exhaustive else (RUNGS.start, 0, RUNGS.stop - 1):
+                k, rung = ladder.best(mu, start)
+                assert rung.bits + mu * rung.error == pytest.approx(rungs[best].bits + mu * rungs[best].error), (
+                    section, mu, start)
+
+
+def test_the_price_spends_what_is_allowed_and_no_more(setting) -> None:  # noqa: ANN001
+    state, _, weights = setting
+    rd = RateDistortion(state.stored, weights, QuantSteps())
+    choices = [rd.choose(allowed) for allowed in (1e-6, 1e-5, 1e-4)]
+    for allowed, choice in zip((1e-6, 1e-5, 1e-4), choices):
+        assert choice.error <= allowed
+        assert choice.error >= 0.5 * allowed  # spent, within the ladders' granularity
+    assert choices[0].bits > choices[1].bits > choices[2].bits
+
+
+def test_sh_bands_the_renders_do_not_see_are_dropped(setting) -> None:  # noqa: ANN001
+    state, _, weights = setting
+    blind = dict(weights.weights)
+    hidden = torch.arange(len(state.stored)) % 2 == 0
+    blind["sh_rest"] = blind["sh_rest"].clone()
+    blind["sh_rest"][hidden] = 0.0  # these Gaussians' view-dependent colour changes no pixel
+    rd = RateDistortion(state.stored, Sensitivity(blind), QuantSteps())
+    choice = rd.choose(1e-5)
+    kept_in, stored = rd.apply(choice)
+    assert len(kept_in) == len(state.stored)
+    rest = stored.sh_rest.reshape(len(stored), -1)
+    assert (rest[hidden] == 0).all() and (rest[~hidden] != 0).any()
+
+
+def test_pruning_removes_what_no_camera_sees_first(setting) -> None:  # noqa: ANN001
+    state, views, weights = setting
+    stored = state.stored
+    n = len(stored)
+    invisible = stored.with_(opacities=torch.where(torch.arange(n) < 50, torch.tensor(-12.0), stored.opacities))
+    scene = LevelState(invisible, state.normals, state.offsets, state.bits)
+    rd = RateDistortion(invisible, sensitivity(scene, views.fit, views.background), QuantSteps())
+    assert set(rd.prune_order()[:50].tolist()) == set(range(50))
+
+
+def test_a_fitted_archive_keeps_its_floor_when_rendered(setting) -> None:  # noqa: ANN001
+    state, views, _ = setting
+    fitted = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=QuantSteps(),
+                       meta={}, name="balanced")  # fmt: skip
+    decoded = expand_archive(decode_archive(fitted.archive))
+    measured = evaluate(decoded, views.fit, views.background, with_ssim=False)
+    assert measured.worst == pytest.approx(fitted.psnr) and measured.worst >= FLOOR
+    # The budget is spent, not hoarded: the error is most of what the floor allows.
+    assert psnr_to_mse(measured.worst) >= 0.5 * psnr_to_mse(FLOOR)
+    lossless = write_archive(state, {})
+    assert len(fitted.archive) < 0.3 * len(lossless)
+    assert [t["psnr"] >= FLOOR for t in fitted.tries][-1] or fitted.psnr >= FLOOR
+    assert fitted.codec.steps is not None and fitted.codec.tries == len(fitted.tries) >= 1
+
+
+def test_no_room_under_the_floor_stores_float32(setting) -> None:  # noqa: ANN001
+    state, views, _ = setting
+    exact = fit_codec(state, views.fit, views.background, floor=math.inf, psnr_before=math.inf, start=QuantSteps(),
+                      meta={}, name="balanced")  # fmt: skip
+    assert exact.choice is None and exact.codec.name == "lossless"
+    assert exact.archive == write_archive(state, {})
+    float32 = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=None,
+                        meta={}, name="lossless")  # fmt: skip
+    assert float32.codec.name == "lossless" and float32.psnr == math.inf

@@ -1,0 +1,118 @@
+"""Levels: nested membership bits decode Gaussian by Gaussian, the fine-tune moves only what a mirror changed, and
+the straight-through rounding of a quantisation-aware fine-tune."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from symgs_core.codec import decode_archive, expand_archive
+from symgs_core.codec.steps import QuantSteps
+from symgs_core.mirror import reflect
+from symgs_core.pipeline.encode import write_archive
+from symgs_core.pipeline.levels import apply_mirror, consistent_bits
+from symgs_core.pipeline.optimize import fake_quantized, halo, optimize_level
+from symgs_core.pipeline.state import LevelState
+from symgs_core.scene import GaussianScene
+from symgs_core.synthetic import synthetic_scene
+from symgs_core.views import self_supervised_views
+
+Y_PLANE = torch.tensor([0.0, 1.0, 0.0])
+X_PLANE = torch.tensor([[1.0, 0.0, 0.0]])
+
+
+def _rows(scene: GaussianScene) -> np.ndarray:
+    return torch.cat([t.reshape(len(scene), -1) for t in scene.tensors().values()], dim=1).double().numpy()
+
+
+def _same_gaussians(a: GaussianScene, b: GaussianScene) -> bool:
+    """The two scenes hold the same Gaussians, each matched to the one nearest in position, attributes equal."""
+    if len(a) != len(b):
+        return False
+    _, match = cKDTree(b.means.numpy()).query(a.means.numpy(), k=1)
+    return len(set(match.tolist())) == len(b) and np.allclose(_rows(a), _rows(b)[match], atol=2e-5)
+
+
+def _nested() -> tuple[LevelState, torch.Tensor, torch.Tensor]:
+    """Level 0 (plane x = 0) already applied, with its left bits drawn at random; the stored set is exact twins
+    across y = 0, so a level-1 mirror pairs Gaussians whose level-0 bits differ about half the time."""
+    g = torch.Generator().manual_seed(5)
+    n = 150
+    half = GaussianScene(
+        means=torch.rand(n, 3, generator=g) * torch.tensor([0.8, 0.8, 0.8]) + torch.tensor([0.1, 0.05, -0.4]),
+        quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+        scales=torch.randn(n, 3, generator=g) * 0.2 - 3.0, opacities=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 3, generator=g), sh_rest=0.1 * torch.randn(n, 3, 3, generator=g),
+    )  # fmt: skip
+    stored = GaussianScene.cat([half, reflect(half, Y_PLANE, 0.0)])
+    bits = (torch.rand(2 * n, 1, generator=g) < 0.5)
+    state = LevelState(stored, X_PLANE.clone(), torch.zeros(1), bits)
+    return state, torch.arange(n), torch.arange(n, 2 * n)
+
+
+def test_nested_levels_decode_gaussian_by_gaussian() -> None:
+    state, left, right = _nested()
+    whole = state.expanded()
+    fixed_left, fixed_right = consistent_bits(state, Y_PLANE, 0.0, left, right)
+    assert 0 < fixed_right.numel() < right.numel()  # some pairs disagree on level 0, some agree
+    mirrored = apply_mirror(state, Y_PLANE, 0.0, fixed_left, fixed_right)
+    decoded = expand_archive(decode_archive(write_archive(mirrored, {})))
+    assert len(mirrored.stored) < len(state.stored)
+    assert _same_gaussians(decoded, whole)
+    # Without the consistency a dropped Gaussian's level-0 copy is lost, or its stand-in's is made for nothing.
+    careless = apply_mirror(state, Y_PLANE, 0.0, left, right)
+    assert not _same_gaussians(expand_archive(decode_archive(write_archive(careless, {}))), whole)
+
+
+def test_without_earlier_levels_the_membership_is_kept_whole() -> None:
+    state, left, right = _nested()
+    plain = LevelState.plain(state.stored)
+    assert consistent_bits(plain, Y_PLANE, 0.0, left, right) == (left, right)
+
+
+def test_the_fine_tune_leaves_what_it_may_not_train_bit_exact() -> None:
+    scene = synthetic_scene("global", n=400, seed=1, sh_degree=1).scene
+    views = self_supervised_views(scene.map(lambda t: t + 0.01), train=3, fit=1, eval=1, resolution=32,
+                                  eval_resolution=32, background=torch.zeros(3))  # fmt: skip
+    trainable = torch.arange(len(scene)) % 3 == 0
+    tuned, run = optimize_level(LevelState.plain(scene), views.train, views.background, iterations=5, extent=1.0,
+                                trainable=trainable)  # fmt: skip
+    assert run == 5
+    for name, value in scene.tensors().items():
+        after = tuned.stored.tensors()[name]
+        assert torch.equal(after[~trainable], value[~trainable]), name
+    assert not torch.equal(tuned.stored.means[trainable], scene.means[trainable])
+
+
+def test_the_fine_tune_stops_when_a_stretch_stops_gaining() -> None:
+    scene = synthetic_scene("global", n=300, seed=1).scene
+    views = self_supervised_views(scene, train=2, fit=1, eval=1, resolution=24, eval_resolution=24,
+                                  background=torch.zeros(3))  # fmt: skip
+    seen = []
+    _, run = optimize_level(LevelState.plain(scene), views.train, views.background, iterations=40, extent=1.0,
+                            check_every=10, keep_going=lambda state: seen.append(len(state.stored)) or False)
+    assert run == 10 and seen == [len(scene)]
+
+
+def test_the_halo_holds_the_neighbours_of_a_region_and_nothing_far() -> None:
+    before = synthetic_scene("global", n=600, seed=4).scene
+    region = torch.nonzero(before.means[:, 0] > 0.2).flatten()
+    mask = halo(before, region, before, radius=0.05)
+    assert mask[region].all()
+    far = before.means[:, 0] < 0.2 - 0.15  # more than two voxels of 0.05 away along x
+    assert not mask[far].any()
+    assert not halo(before, torch.zeros(0, dtype=torch.long), before, radius=0.05).any()
+
+
+def test_straight_through_rounding() -> None:
+    params = {k: v.clone().requires_grad_(True) for k, v in synthetic_scene("global", n=50, seed=2, sh_degree=1)
+              .scene.tensors().items()}  # fmt: skip
+    steps = QuantSteps().scaled(4.0)
+    shown = fake_quantized(params, steps, extent=2.0)
+    step = steps.position * 2.0
+    assert torch.allclose(shown["means"] / step, torch.round(params["means"] / step), atol=1e-4)
+    assert torch.allclose(shown["scales"], torch.round(params["scales"] / steps.scale) * steps.scale)
+    (shown["means"].sum() + shown["sh_dc"].sum()).backward()
+    assert torch.equal(params["means"].grad, torch.ones_like(params["means"]))  # the rounding passes the gradient
+    assert torch.equal(params["sh_dc"].grad, torch.ones_like(params["sh_dc"]))
