@@ -13,6 +13,7 @@ from torch import Tensor
 from ..mirror import Plane
 from ..scene import GaussianScene
 from .clusters import Clusters, attributes, cluster
+from .components import spatial_components
 from .config import DetectConfig
 from .frame import normalised_frame
 from .grid import GridSpec, VoteIndex, top_peaks
@@ -28,6 +29,8 @@ _SUPPRESS_WINDOW = 4  # cells around a rejected peak cleared before the next can
 _SAME_PLANE_CELLS = 4  # a candidate this many cells from a known mirror is that mirror again
 _SPARE_PEAKS = 2  # peaks per candidate or known mirror: one plane may leave a peak or two
 _CHANCE_PLANES = 6  # random planes that measure how much matches by chance
+_MAX_PARTS = 8  # separate parts of a working set searched on their own, largest first
+_SAME_ANGLE_DEG = 1.0  # a part's mirror this close to the whole set's is that mirror
 
 
 class _Clock:
@@ -68,7 +71,7 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
         if working.numel() < config.min_gaussians:
             break
         subset = light if working.numel() == len(scene) else light.select(working)
-        found = _detect_level(subset, config, level, known)
+        found = _best(_detect_level(subset, config, level, known), _detect_in_parts(subset, config, level, known))
         if found is None:
             break
         plane, votes, sides, timings = found
@@ -82,6 +85,36 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
         known.append(plane)
         working = kept
     return mirrors
+
+
+Found = tuple[Plane, int, Sides, dict[str, float]]
+
+
+def _detect_in_parts(scene: GaussianScene, config: DetectConfig, level: int, known: list[Plane]) -> list[Found]:
+    """The mirror of each spatially separate part that has one (``components``): a small object beside a large one
+    covers too little of the whole working set to be significant there. Sides index ``scene``."""
+    frame = normalised_frame(scene.means.float(), config.radius_quantile)
+    if frame is None:
+        return []
+    out = []
+    for part in spatial_components(scene.means, frame.radius, min_size=config.min_gaussians)[:_MAX_PARTS]:
+        found = _detect_level(scene.select(part), config, level, known)
+        if found is not None:
+            plane, votes, sides, timings = found
+            out.append((plane, votes, Sides(part[sides.left], part[sides.right]), timings))
+    return out
+
+
+def _best(whole: Found | None, parts: list[Found]) -> Found | None:
+    """Of the mirror found in the whole working set and those found in its separate parts, the one that matches the
+    most Gaussians: the larger first, whether a scene-wide mirror or a small object's own. A part's mirror that is
+    the whole set's mirror again gives way to it (its membership spans every part)."""
+    if whole is not None:
+        parts = [p for p in parts if p[0].angle_deg(whole[0]) > _SAME_ANGLE_DEG]
+    options = ([whole] if whole is not None else []) + parts
+    if not options:
+        return None
+    return max(options, key=lambda found: found[2].left.numel() + found[2].right.numel())
 
 
 def _detect_level(

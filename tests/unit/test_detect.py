@@ -11,7 +11,7 @@ from symgs_core.detect import DetectConfig, Mirror, detect
 from symgs_core.detect.frame import normalised_frame
 from symgs_core.mirror import Plane, reflect
 from symgs_core.scene import GaussianScene
-from symgs_core.synthetic import Pose, synthetic_scene
+from symgs_core.synthetic import Pose, apply_pose, synthetic_scene
 from tests.conftest import shared_file
 
 
@@ -91,6 +91,29 @@ def test_local_mirrors_of_different_sizes_found_larger_first_with_their_halves()
     for previous, m in zip(mirrors, mirrors[1:], strict=False):
         assert m.level == previous.level + 1
         assert_partition(m, set(previous.left.tolist()) | set(previous.out.tolist()))
+
+
+def _large_and_small(small: int, capture: str) -> tuple[GaussianScene, list[Plane]]:
+    """A 20,000-Gaussian symmetric object and, apart from it, a symmetric object a third its size."""
+    big = synthetic_scene("global", n=20_000, seed=1, capture=capture)
+    little = synthetic_scene("global", n=small, seed=11, capture=capture)
+    q = torch.tensor([0.8, 0.2, 0.5, 0.26], dtype=torch.float64)
+    pose = Pose(tuple((q / q.norm()).tolist()), (2.5, 0.5, 0.3), 0.35)
+    scene = GaussianScene.cat([big.scene, apply_pose(little.scene, pose)])
+    return scene, [big.planes[0], pose.apply_plane(little.planes[0])]
+
+
+@pytest.mark.parametrize("small, capture", [(2000, "independent"), (1000, "twins")])
+def test_a_small_object_beside_a_large_one_gets_its_own_mirror(small: int, capture: str) -> None:
+    """The small object covers too little of the whole scene to be significant there: it is searched on its own
+    (a separate part of the working set) and found, the larger mirrors first (a part of the large object that is
+    symmetric by itself may match more Gaussians, and comes before it)."""
+    scene, planes = _large_and_small(small, capture)
+    found = detect(scene, DetectConfig(max_mirrors=3))
+    assert found[0].plane.angle_deg(planes[0]) < 1.0
+    assert any(m.plane.angle_deg(planes[1]) < 1.0 and m.right.numel() >= 0.3 * small for m in found[1:])
+    matched = [m.left.numel() + m.right.numel() for m in found]
+    assert matched == sorted(matched, reverse=True)
 
 
 def test_nested_mirror_found_inside_the_kept_half() -> None:
