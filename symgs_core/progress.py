@@ -56,13 +56,24 @@ class Eta:
         # Keep the newest sample at or before the window's start, so the rate always spans the whole window.
         while len(self._samples) > 1 and self._samples[1][0] <= now - self.window_s:
             self._samples.popleft()
+        return self.estimate(now)
+
+    def estimate(self, now: float) -> float | None:
+        """The seconds left at ``now`` (at or after the last report) with no new report since: a stage that reports
+        rarely is seen slowing down as time passes, not frozen at its last estimate."""
+        if self._start is None:
+            return None
+        t_last, fraction = self._samples[-1]
+        now = max(now, t_last)
         if fraction >= 1.0:
             return 0.0
-        assert self._start is not None
         t0, f0 = self._start
         if now - t0 < self.min_elapsed_s or fraction - f0 < self.min_progress:
             return None
-        t_old, f_old = self._samples[0]
+        old = 0
+        while old + 1 < len(self._samples) and self._samples[old + 1][0] <= now - self.window_s:
+            old += 1
+        t_old, f_old = self._samples[old]
         if now <= t_old or fraction <= f_old:
             return None
         return (1.0 - fraction) * (now - t_old) / (fraction - f_old)

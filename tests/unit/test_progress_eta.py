@@ -51,6 +51,17 @@ def test_no_estimate_without_progress_and_fractions_never_move_back():
     assert eta.update(1.0, 26) == 0.0
 
 
+def test_between_reports_the_estimate_sees_the_stage_slowing_down():
+    eta = Eta(window_s=20.0, min_elapsed_s=0.0)
+    feed(eta, [(t, t / 100) for t in range(0, 51)])  # 1% per second, then silence at 50%
+    assert eta.estimate(50.0) == pytest.approx(50.0)
+    # at 60 s the window starts at 40 s (40%): 10% in 20 s
+    assert eta.estimate(60.0) == pytest.approx(0.5 / (0.1 / 20))
+    assert eta.estimate(65.0) == pytest.approx(0.5 / (0.05 / 20))  # window from 45 s (45%)
+    assert eta.estimate(70.5) is None  # no progress over a whole window
+    assert Eta().estimate(3.0) is None  # nothing reported yet
+
+
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError):
         Eta(window_s=0.0)
