@@ -255,6 +255,8 @@ def chart(rows: list[dict], path: Path) -> None:
         ax.set_xlabel("Gaussians")
         ax.set_ylabel(unit)
         ax.grid(True, which="both", alpha=0.3)
+    ax_t.plot([r["gaussians"] for r in ok], [r["symgs"]["cpu_s"] for r in ok], "o--", color="C0", alpha=0.5,
+              markerfacecolor="none", label="symgs compress, CPU seconds (all threads)")  # fmt: skip
     if ok:
         stages = sorted({k for r in ok for k in r["stages"]}, key=lambda k: -max(r["stages"].get(k, 0) for r in ok))
         for k in stages[:5]:
