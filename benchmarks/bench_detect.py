@@ -45,6 +45,7 @@ from symgs_core.mirror import Plane  # noqa: E402
 from symgs_core.synthetic import Pose, synthetic_scene  # noqa: E402
 
 PLANE_STEPS = ("frame", "cluster", "pairs", "vote", "peak", "refine")
+SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
 ALL_PAIRS_CHUNK = 1 << 22
 
 
@@ -213,8 +214,7 @@ def command_runs(ply: Path, repeats: int, max_mirrors: int) -> dict:
     """``symgs detect`` of ``ply`` in ``repeats`` fresh processes: medians, and the largest peak memory."""
     runs = []
     for _ in range(repeats):
-        argv = [sys.executable, "-m", "service.cli.parser", "detect", str(ply), "--json", "--max-mirrors",
-                str(max_mirrors)]  # fmt: skip
+        argv = [*SYMGS, "detect", str(ply), "--json", "--max-mirrors", str(max_mirrors)]
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         out, err = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]

@@ -35,6 +35,7 @@ SOG = ROOT.parent / "shared/data/playbot_cc_by_sa3d/sog_lod0_500k/meta.json"
 SIZES = {"125k": 125_000, "250k": 250_000, "500k": 500_000, "1M": 1_000_000, "2M": 2_000_000}
 BASE = 500_000
 GRID = 1.6  # metres between the copies' centres: the capture spans about 1.4 across
+SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
 
 
 @dataclass
@@ -98,7 +99,7 @@ def warm_up(work: Path) -> None:
 
     tiny = work / "warm_up.ply"
     save_scene(synthetic_scene("global", n=2000, seed=0, sh_degree=2).scene, tiny)
-    cmd = [sys.executable, "-m", "service.cli.parser", "compress", str(tiny), "-o", str(work / "warm_up.symgs"),
+    cmd = [*SYMGS, "compress", str(tiny), "-o", str(work / "warm_up.symgs"),
            "--iterations", "2", "--resolution", "32", "--train-views", "2", "--eval-views", "1", "--quiet"]  # fmt: skip
     subprocess.run(cmd, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
 
@@ -151,7 +152,7 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
     out = args.work / label
     out.mkdir(exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # the children run this checkout's code
-    symgs = [sys.executable, "-m", "service.cli.parser"]
+    symgs = SYMGS
     row: dict = {"label": label, "gaussians": SIZES[label], "ply_bytes": ply.stat().st_size, "preset": args.preset,
                  "time_limit_s": args.time_limit, "load_before": os.getloadavg()[0]}  # fmt: skip
 
@@ -160,7 +161,7 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
         stale.unlink(missing_ok=True)
     cmd = [*symgs, "compress", str(ply), "-o", str(archive), "--report", str(report), "--preset", args.preset,
            *args.compress_args.split()]  # fmt: skip
-    print(f"[{label}] {' '.join(cmd[2:])}", flush=True)
+    print(f"[{label}] symgs {' '.join(cmd[len(SYMGS):])}", flush=True)
     run = run_child(cmd, limit_s=args.time_limit, log=out / "compress.log", env=env)
     row["symgs"] = asdict(run)
     row["load_after"] = os.getloadavg()[0]
