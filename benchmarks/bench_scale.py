@@ -8,7 +8,10 @@ seeded random subsets of it (125k, 250k); copies of it turned about the vertical
 Every run is its own process, one after the other: `symgs compress` (preset balanced unless ``--preset``), then
 splat-transform writing `.spz` v4 (its default) and v3 from the same `.ply`, then, unless ``--no-fidelity``,
 `symgs evaluate` of our archive and of the `.spz` v4 on the same 8 cameras. Peak RSS is each process's maximum
-resident set (the kernel's ``ru_maxrss``; for a run that the time limit kills, its ``VmHWM`` just before). A
+resident set (the kernel's ``ru_maxrss``; for a run that the time limit kills, its ``VmHWM`` just before). The
+kernel counts in ``ru_maxrss`` what the process held before it replaced itself with the command, a copy of this
+one: so this process stays small (the scenes are made, and the kernels compiled, in a child of their own) and
+records its own resident memory at each start (``parent_rss_mib``), a floor under every peak it reports. A
 compression past ``--time-limit`` is recorded as timed out with the last progress line it printed, and the larger
 sizes are then skipped unless ``--keep-going``. Results accumulate in ``WORK/scale.json`` (a rerun of a size replaces
 it); the table is printed as Markdown and the chart (time and memory against N, log-log, with a linear reference)
@@ -52,10 +55,11 @@ class Child:
         return self.rc is None
 
 
-def _vm_hwm(pid: int) -> int:
+def _vm(pid: int, field: str = "VmHWM:") -> int:
+    """A ``/proc/<pid>/status`` memory figure in bytes (0 once the process is gone)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(field):
                 return int(line.split()[1]) * 1024
     except OSError:
         pass
@@ -74,7 +78,7 @@ def run_child(cmd: list[str], *, limit_s: float, log: Path, env: dict[str, str] 
             proc.returncode = rc = os.waitstatus_to_exitcode(status)
             return Child(rc, elapsed, usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024)
         if elapsed > limit_s:
-            peak = _vm_hwm(proc.pid)
+            peak = _vm(proc.pid)
             os.killpg(proc.pid, signal.SIGKILL)
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = os.waitstatus_to_exitcode(status)
@@ -90,6 +94,19 @@ def splat_transform() -> str:
         sys.exit("splat-transform not found: set SPLAT_TRANSFORM or install @playcanvas/splat-transform into "
                  "~/.cache/symgs/npm (the test suite does it)")  # fmt: skip
     return exe
+
+
+def setup(work: Path, labels: list[str], sog: Path) -> tuple[str, dict[str, Path]]:
+    """splat-transform, the scenes' files and compiled kernels, from a child process (see the module's notes)."""
+    argv = [sys.executable, __file__, "--setup", "--work", str(work), "--sizes", ",".join(labels), "--sog", str(sog)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(argv, check=True, stdout=subprocess.PIPE, text=True, env=env)
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    return found["exe"], {label: Path(p) for label, p in found["paths"].items()}
+
+
+def _rss_mib() -> float:
+    return _vm(os.getpid(), "VmRSS:") / 2**20
 
 
 def warm_up(work: Path) -> None:
@@ -154,7 +171,8 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # the children run this checkout's code
     symgs = SYMGS
     row: dict = {"label": label, "gaussians": SIZES[label], "ply_bytes": ply.stat().st_size, "preset": args.preset,
-                 "time_limit_s": args.time_limit, "load_before": os.getloadavg()[0]}  # fmt: skip
+                 "time_limit_s": args.time_limit, "load_before": os.getloadavg()[0],
+                 "parent_rss_mib": _rss_mib()}  # fmt: skip
 
     archive, report = out / "out.symgs", out / "report.json"
     for stale in (archive, report):
@@ -284,6 +302,7 @@ def main() -> None:
     parser.add_argument("--keep-going", action="store_true", help="run the larger sizes after a timeout")
     parser.add_argument("--no-fidelity", action="store_true", help="skip `symgs evaluate` of archive and .spz")
     parser.add_argument("--table-only", action="store_true", help="print the table and chart of scale.json")
+    parser.add_argument("--setup", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT))  # this checkout's code, as its children run it
     labels = [s for s in args.sizes.split(",") if s]
@@ -294,10 +313,14 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     results = args.work / "scale.json"
     rows = {r["label"]: r for r in json.loads(results.read_text())} if results.exists() else {}
-    if not args.table_only:
+    if args.setup:
         exe = splat_transform()
         paths = prepare(args.work, labels, exe, args.sog)
         warm_up(args.work)
+        print(json.dumps({"exe": exe, "paths": {label: str(p) for label, p in paths.items()}}))
+        return
+    if not args.table_only:
+        exe, paths = setup(args.work, labels, args.sog)
         for label in labels:
             row = measure(label, paths[label], args, exe)
             rows[label] = row
