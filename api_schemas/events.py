@@ -18,7 +18,7 @@ class JobEvent(BaseModel):
             "examples": [
                 {
                     "kind": "progress", "state": "running", "stage": "optimize", "level": 0, "progress": 0.42,
-                    "message": "level 0: step 80/200", "time": 1767225600.5,
+                    "message": "level 0: step 80/200", "eta_s": 57.0, "time": 1767225600.5,
                 },  # fmt: skip
                 {"kind": "state", "state": "succeeded", "stage": "done", "level": None, "progress": 1.0,
                  "message": "", "time": 1767225642.0},  # fmt: skip
@@ -32,4 +32,7 @@ class JobEvent(BaseModel):
     level: int | None = None
     progress: float = Field(ge=0, le=1)
     message: str = ""
+    eta_s: float | None = Field(
+        None, ge=0, description="estimated seconds until the job ends, from its progress so far; null when unknown"
+    )
     time: float = Field(description="Unix time, seconds")

@@ -75,6 +75,7 @@ class Job(BaseModel):
                     "level": 0,
                     "progress": 0.42,
                     "message": "level 0: step 80/200",
+                    "eta_s": 57.0,
                     "params": {"preset": "balanced", "psnr_budget": 0.3, "max_levels": 4, "device": "auto"},
                     "queue": "cpu",
                     "scene": {"filename": "chair.ply", "bytes": 1240000, "gaussians": 5000, "sh_degree": 3},
@@ -111,6 +112,10 @@ class Job(BaseModel):
     level: int | None = Field(None, description="mirror level being worked on")
     progress: float = Field(ge=0, le=1)
     message: str = ""
+    eta_s: float | None = Field(
+        None, ge=0, description="estimated seconds until a running job ends, from its progress so far; null when "
+        "unknown or not running",
+    )
     params: JobParams
     queue: Queue
     scene: SceneInfo

@@ -8,9 +8,13 @@ membership (KD-tree correspondence), with the plane's error against the planted 
 
 ``--all-pairs N`` also votes every pair inside every cluster (the paper's exhaustive scheme; chunked, the same
 clusters and accumulator) in the N-Gaussian case, in the same process, and compares the peaks. ``--real DIR`` runs
-detection on every ``.ply`` under DIR. Prints Markdown; ``--json`` keeps the raw figures.
+detection on every ``.ply`` under DIR. ``--cli N`` times the whole command, ``symgs detect FILE.ply --json`` (its
+default four levels), on the synthetic case of N object Gaussians written as a PLY (``--cli-scene`` adds given PLY
+files): each run a fresh process, with the process's wall time, the command's own load and detect times, its CPU time
+and its peak resident memory. Prints Markdown; ``--json`` keeps the raw figures.
 
     python benchmarks/bench_detect.py --sizes 100000,1000000,10000000 --all-pairs 1000000 --real ../shared/data
+    python benchmarks/bench_detect.py --sizes "" --cli 1000000,10000000 --repeats 3
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,6 +45,7 @@ from symgs_core.mirror import Plane  # noqa: E402
 from symgs_core.synthetic import Pose, synthetic_scene  # noqa: E402
 
 PLANE_STEPS = ("frame", "cluster", "pairs", "vote", "peak", "refine")
+SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
 ALL_PAIRS_CHUNK = 1 << 22
 
 
@@ -204,13 +210,61 @@ def real_scene(path: Path, root: Path, max_mirrors: int) -> dict:
     }
 
 
+def command_runs(ply: Path, repeats: int, max_mirrors: int) -> dict:
+    """``symgs detect`` of ``ply`` in ``repeats`` fresh processes: medians, and the largest peak memory."""
+    runs = []
+    for _ in range(repeats):
+        argv = [*SYMGS, "detect", str(ply), "--json", "--max-mirrors", str(max_mirrors)]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        out, err = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            raise RuntimeError(f"symgs detect {ply} failed: {err.decode(errors='replace')[-800:]}")
+        report = json.loads(out)
+        runs.append({
+            "wall": wall, "load": report["timings"]["load"], "detect": report["timings"]["detect"],
+            "cpu": usage.ru_utime + usage.ru_stime, "peak_mib": usage.ru_maxrss / 1024,
+            "gaussians": report["gaussians"], "mirrors": [m["coverage"] for m in report["mirrors"]],
+        })  # fmt: skip
+    med = lambda key: statistics.median(r[key] for r in runs)  # noqa: E731
+    return {
+        "file": str(ply), "gaussians": runs[0]["gaussians"], "repeats": repeats, "max_mirrors": max_mirrors,
+        "wall": med("wall"), "load": med("load"), "detect": med("detect"),
+        "load_detect": statistics.median(r["load"] + r["detect"] for r in runs), "cpu": med("cpu"),
+        "peak_mib": max(r["peak_mib"] for r in runs), "coverage": runs[0]["mirrors"],
+        "load_average": os.getloadavg()[0],
+    }  # fmt: skip
+
+
+def write_scene(n: int, path: Path) -> None:
+    from symgs_core.ply import save_scene
+
+    save_scene(benchmark_scene(n).scene, path)
+
+
 def _run_worker(args: list[str]) -> dict:
     done = subprocess.run([sys.executable, __file__, *args], check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _markdown(results: list[dict], real: list[dict], command: str) -> str:
+def _markdown(results: list[dict], real: list[dict], commands: list[dict], command: str) -> str:
     lines = [f"    {command}", ""]
+    if commands:
+        lines += [
+            "| scene | Gaussians | process wall (s) | load (s) | detect (s) | load + detect (s) | CPU (s) | peak MiB "
+            "| coverage per level | load average |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: |",
+        ]
+        for r in commands:
+            lines.append(
+                f"| {Path(r['file']).name} | {r['gaussians']:,} | {r['wall']:.2f} | {r['load']:.2f} "
+                f"| {r['detect']:.2f} | {r['load_detect']:.2f} | {r['cpu']:.2f} | {r['peak_mib']:,.0f} "
+                f"| {', '.join(f'{c:.3f}' for c in r['coverage']) or 'none'} | {r['load_average']:.1f} |"
+            )
+        lines.append("")
     if results:
         lines += [
             "| Gaussians | plane (s) | membership (s) | total (s) | CPU (s) | angle error | offset error | coverage "
@@ -278,10 +332,16 @@ def main() -> None:
     )
     parser.add_argument("--real", type=Path, help="run on every .ply under this folder")
     parser.add_argument("--max-mirrors", type=int, default=4, help="levels searched on the real scenes")
+    parser.add_argument("--cli", default="", help="object Gaussians of synthetic cases to time `symgs detect` on")
+    parser.add_argument("--cli-scene", type=Path, nargs="*", default=[], help="PLY files to time `symgs detect` on")
     parser.add_argument("--json", type=Path, help="write the raw figures here")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--write-scene", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--with-all-pairs", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.write_scene is not None:
+        write_scene(int(args.write_scene[0]), Path(args.write_scene[1]))
+        return
     if args.worker is not None:
         print(json.dumps(worker(args.worker, args.repeats, args.with_all_pairs)))
         return
@@ -290,11 +350,20 @@ def main() -> None:
         extra = ["--with-all-pairs"] if n == args.all_pairs else []
         results.append(_run_worker(["--worker", str(n), "--repeats", str(args.repeats), *extra]))
     real = [real_scene(p, args.real, args.max_mirrors) for p in sorted(args.real.rglob("*.ply"))] if args.real else []
+    commands = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in (int(v) for v in args.cli.split(",") if v):
+            ply = Path(tmp) / f"synthetic_{n}.ply"
+            subprocess.run([sys.executable, __file__, "--write-scene", str(n), str(ply)], check=True)
+            commands.append(command_runs(ply, args.repeats, args.max_mirrors))
+            ply.unlink()
+    commands += [command_runs(ply, args.repeats, args.max_mirrors) for ply in args.cli_scene]
     command = "python benchmarks/bench_detect.py " + " ".join(sys.argv[1:])
-    print(_markdown(results, real, command))
+    print(_markdown(results, real, commands, command))
     print(f"\nLoad average at the end (1, 5, 15 min): {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
     if args.json:
-        args.json.write_text(json.dumps({"synthetic": results, "real": real}, indent=2, default=str))
+        raw = {"synthetic": results, "real": real, "command": commands}
+        args.json.write_text(json.dumps(raw, indent=2, default=str))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .ply_header import DC, GEOMETRY, NORMALS, ROTATIONS, SCALES, PlyError, read_header
+from .ply_header import DC, GEOMETRY, NORMALS, ROTATIONS, SCALES, TYPES, PlyError, PlyHeader, read_header
 from .scene import SH_REST_COUNT, GaussianScene
 
 # logit(1 - 1/512) and logit(1/512): the opacity range of an 8-bit alpha that avoids 0 and 1.
@@ -55,24 +55,78 @@ class PlyReport:
         return asdict(self)
 
 
-def _to_scene(data: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianScene, dict[str, int]]:
-    """Scene from the structured vertex array, after the finiteness checks and repairs."""
-    order = [*GEOMETRY, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
-    n = len(data)
-    # One native-order float32 matrix [N, P]; float32 input keeps its exact bits.
-    values = np.empty((n, len(order)), dtype=np.float32)
-    for i, name in enumerate(order):
-        values[:, i] = data[name]
-    o = order.index("opacity")
-    bad = ~np.isfinite(values)
-    bad[:, o] = np.isnan(values[:, o])  # infinite opacities are repaired below
-    if bad.any():
-        counts = bad.sum(axis=0)
-        where = ", ".join(f"{name} ({c} values)" for name, c in zip(order, counts, strict=True) if c)
+def _vertex_rows(path: Path, header: PlyHeader) -> np.ndarray | None:
+    """The vertex rows mapped from the file as a structured array (no copy), for binary files whose elements have no
+    lists (every row at a fixed size, the file's length already checked by the header); None otherwise."""
+    if header.format == "ascii" or any(e.has_lists for e in header.elements):
+        return None
+    order = "<" if header.format == "binary_little_endian" else ">"
+    offset = header.size
+    for element in header.elements:
+        dtype = np.dtype([(name, f"{order}{TYPES[kind][1]}{TYPES[kind][0]}") for name, kind, _ in element.properties])
+        if element is header.vertex:
+            if element.count == 0:
+                return np.empty(0, dtype)
+            return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(element.count,))
+        offset += element.count * dtype.itemsize
+    raise AssertionError("the header has a vertex element")
+
+
+def _float_matrix(rows: np.ndarray) -> np.ndarray | None:
+    """The rows as a float32 matrix [N, P] (a view) when every property is a float32; None otherwise."""
+    kinds = {rows.dtype.fields[name][0] for name in rows.dtype.names or ()}  # type: ignore[index]
+    kind = kinds.pop() if len(kinds) == 1 else None
+    if kind is None or kind.kind != "f" or kind.itemsize != 4:
+        return None
+    return np.ndarray((len(rows), len(rows.dtype.names)), kind, rows, 0, (rows.dtype.itemsize, 4))  # type: ignore[arg-type]
+
+
+def _fill(out: np.ndarray, rows: np.ndarray, matrix: np.ndarray | None, names: list[str]) -> None:
+    """Copy the named properties into the columns of ``out`` [N, len(names)] (a view of the attribute's array)."""
+    if not names:
+        return
+    if matrix is None:
+        for j, name in enumerate(names):
+            out[:, j] = rows[name]
+        return
+    index = [rows.dtype.names.index(name) for name in names]  # type: ignore[union-attr]
+    if index == list(range(index[0], index[0] + len(index))):
+        out[...] = matrix[:, index[0] : index[0] + len(index)]  # one strided block copy: the usual layouts
+    else:
+        out[...] = matrix[:, index]
+
+
+def _to_scene(rows: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianScene, dict[str, int]]:
+    """Scene from the structured vertex rows, after the finiteness checks and repairs: each attribute is copied once,
+    straight into the native float32 array its tensor wraps (float32 input keeps its exact bits)."""
+    n, k = len(rows), len(rest) // 3
+    groups = {
+        "means": list(GEOMETRY), "sh_dc": list(DC), "opacities": ["opacity"], "scales": list(SCALES),
+        "quats": list(ROTATIONS),
+    }  # fmt: skip
+    matrix = _float_matrix(rows)
+    values = {name: np.empty((n, len(names)), np.float32) for name, names in groups.items()}
+    for name, names in groups.items():
+        _fill(values[name], rows, matrix, names)
+    sh_rest = np.empty((n, k, 3), np.float32)
+    for c in range(3):  # f_rest is channel-major: f_rest_{c*K + j} is coefficient j+1 of channel c
+        _fill(sh_rest[:, :, c], rows, matrix, rest[c * k : (c + 1) * k])
+    values["sh_rest"] = sh_rest.reshape(n, 3 * k)
+    groups["sh_rest"] = [rest[c * k + j] for j in range(k) for c in range(3)]
+
+    # min and max carry NaN and the infinities through without a temporary array: the counts only when they hit.
+    suspect = [name for name, v in values.items() if v.size and not np.isfinite([v.min(), v.max()]).all()]
+    counts: dict[str, int] = {}
+    for name in suspect:  # infinite opacities are repaired below
+        invalid = np.isnan(values[name]) if name == "opacities" else ~np.isfinite(values[name])
+        counts.update(zip(groups[name], invalid.sum(axis=0).tolist(), strict=True))
+    if any(counts.values()):
+        order = [*GEOMETRY, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
+        where = ", ".join(f"{prop} ({counts[prop]} values)" for prop in order if counts.get(prop))
         raise PlyError("non_finite", f"{path.name}: NaN or infinite values in {where}")
 
     repairs: dict[str, int] = {}
-    opacity = values[:, o]
+    opacity = values["opacities"].reshape(n)
     for repair, infinity, limit in (
         ("opacity_pos_inf_clamped", np.inf, OPACITY_LOGIT_MAX),
         ("opacity_neg_inf_clamped", -np.inf, OPACITY_LOGIT_MIN),
@@ -81,41 +135,41 @@ def _to_scene(data: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianSc
         if hit.any():
             opacity[hit] = limit
             repairs[repair] = int(hit.sum())
-    quats = values[:, -4:]
-    zero = np.linalg.norm(quats.astype(np.float64), axis=1) < 1e-12
-    if zero.any():
+    quats = values["quats"]
+    # Only rows whose every component is below 1e-12 can have a norm below it: the exact test runs on those alone.
+    small = np.flatnonzero((np.abs(quats) < 1e-12).all(axis=1))
+    zero = small[np.linalg.norm(quats[small].astype(np.float64), axis=1) < 1e-12]
+    if len(zero):
         quats[zero] = (1.0, 0.0, 0.0, 0.0)
-        repairs["zero_quaternion_set_to_identity"] = int(zero.sum())
+        repairs["zero_quaternion_set_to_identity"] = len(zero)
 
-    k = len(rest) // 3
-    r = 6 + 3 * k
-    tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a))
-    scene = GaussianScene(
-        means=tensor(values[:, 0:3]),
-        quats=tensor(quats),
-        scales=tensor(values[:, r + 1 : r + 4]),
-        opacities=tensor(opacity),
-        sh_dc=tensor(values[:, 3:6]),
-        sh_rest=tensor(values[:, 6:r].reshape(n, 3, k).transpose(0, 2, 1)),  # channel-major -> [N, K, 3]
-    )
+    values["opacities"] = opacity
+    values["sh_rest"] = values["sh_rest"].reshape(n, k, 3)
+    scene = GaussianScene(**{name: torch.from_numpy(v) for name, v in values.items()})
     return scene, repairs
 
 
 def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None) -> tuple[GaussianScene, PlyReport]:
-    """Read a Gaussian scene and a report of what was found and repaired; raises PlyError on bad input."""
-    from plyfile import PlyData, PlyParseError
+    """Read a Gaussian scene and a report of what was found and repaired; raises PlyError on bad input.
 
+    Binary files without lists (the usual case, either byte order) are mapped and each attribute copied once from
+    the mapping; ascii files and files with list properties are parsed by plyfile."""
     path = Path(path)
     header = read_header(path, max_gaussians=max_gaussians)
     names, rest = header.properties, list(header.rest)
 
-    try:
-        data = PlyData.read(str(path))["vertex"].data
-    except (PlyParseError, ValueError, EOFError) as exc:
-        code = "truncated" if "early end" in str(exc).lower() or isinstance(exc, EOFError) else "malformed"
-        raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
+    rows = _vertex_rows(path, header)
+    if rows is None:
+        from plyfile import PlyData, PlyParseError
 
-    scene, repairs = _to_scene(data, rest, path)
+        try:
+            rows = PlyData.read(str(path))["vertex"].data
+        except (PlyParseError, ValueError, EOFError) as exc:
+            code = "truncated" if "early end" in str(exc).lower() or isinstance(exc, EOFError) else "malformed"
+            raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
+
+    scene, repairs = _to_scene(rows, rest, path)
+    del rows  # unmaps the file
     report = PlyReport(
         count=len(scene),
         sh_degree=scene.sh_degree,

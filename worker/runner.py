@@ -13,12 +13,13 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 from redis import RedisError
 
 from api_schemas import JobMetrics, MirrorSummary
+from symgs_core.progress import Eta
 
 from .settings import Settings
 from .storage import Storage
@@ -71,23 +72,30 @@ class _Heartbeat(threading.Thread):
 
 @dataclass
 class _Progress:
-    """The pipeline's progress callback: writes the job store and its event stream, thinned within a stage, and
-    saves checkpoints the pipeline wrote since the last event (``save_checkpoints``)."""
+    """The pipeline's progress callback: writes the job store and its event stream, thinned within a stage, with the
+    estimated time left (every report feeds the estimate, thinned or not), and saves checkpoints the pipeline wrote
+    since the last event (``save_checkpoints``)."""
 
     store: JobStore
     job_id: str
     save_checkpoints: Callable[[], None]
+    eta: Eta = field(default_factory=Eta)
+    clock: Callable[[], float] = time.monotonic
     _last: tuple[str, int | None, float] = ("", None, 0.0)
 
     def __call__(self, event) -> None:  # noqa: ANN001 - symgs_core.progress.ProgressEvent
         self.save_checkpoints()
-        now = time.monotonic()
+        now = self.clock()
+        eta_s = self.eta.update(event.fraction, now)
         stage, level, at = self._last
         if (event.stage, event.level) == (stage, level) and now - at < _PROGRESS_EVERY_S and event.fraction < 1:
             return
         self._last = (event.stage, event.level, now)
         fraction = min(max(float(event.fraction), 0.0), 1.0)
-        self.store.progress(self.job_id, stage=event.stage, level=event.level, fraction=fraction, message=event.message)
+        self.store.progress(
+            self.job_id, stage=event.stage, level=event.level, fraction=fraction, message=event.message,
+            eta_s=None if eta_s is None else round(eta_s, 1),
+        )  # fmt: skip
 
 
 class _StopCheck:

@@ -91,6 +91,7 @@ class JobRecord:
     level: int | None = None
     progress: float = 0.0
     message: str = ""
+    eta_s: float | None = None  # of a running job; a state change clears it
     mirrors: list[dict[str, Any]] = field(default_factory=list)
     metrics: dict[str, Any] | None = None
     artifacts: list[str] = field(default_factory=list)
@@ -139,6 +140,7 @@ class JobRecord:
             level=opt("level", int),
             progress=float(h.get("progress") or 0),
             message=h.get("message", ""),
+            eta_s=opt("eta_s", float),
             mirrors=json.loads(h.get("mirrors") or "[]"),
             metrics=json.loads(h.get("metrics") or "null"),
             artifacts=json.loads(h.get("artifacts") or "[]"),
@@ -178,6 +180,7 @@ def _event(kind: str, state: str, h: dict[str, str], now: float) -> dict[str, st
         level=int(h["level"]) if h.get("level") else None,
         progress=float(h.get("progress") or 0),
         message=h.get("message", ""),
+        eta_s=float(h["eta_s"]) if h.get("eta_s") else None,
         time=now,
     )
     return {"data": event.model_dump_json()}
@@ -245,7 +248,7 @@ class JobStore:
             if not h or h["state"] not in _ALLOWED[to]:
                 return None
             now = time.time()
-            update = _hash_fields({**fields, "state": to, "updated_at": now})
+            update = _hash_fields({"eta_s": None, **fields, "state": to, "updated_at": now})
             if to in TERMINAL_STATES:
                 update["finished_at"] = str(now)
             merged = {**h, **update}
@@ -268,10 +271,13 @@ class JobStore:
         """Set fields of a job record that are not its state (mirrors, metrics, attempts, ...)."""
         self.r.hset(job_key(job_id), mapping=_hash_fields({**fields, "updated_at": time.time()}))
 
-    def progress(self, job_id: str, *, stage: str, level: int | None, fraction: float, message: str) -> None:
+    def progress(
+        self, job_id: str, *, stage: str, level: int | None, fraction: float, message: str, eta_s: float | None = None
+    ) -> None:
         """Record a progress report of a running job and append it to the job's event stream."""
         now = time.time()
-        h = _hash_fields({"stage": stage, "level": level, "progress": fraction, "message": message, "updated_at": now})
+        fields = {"stage": stage, "level": level, "progress": fraction, "message": message, "eta_s": eta_s}
+        h = _hash_fields({**fields, "updated_at": now})
         with self.r.pipeline(transaction=True) as p:
             p.hset(job_key(job_id), mapping=h)
             p.xadd(events_key(job_id), _event("progress", "running", h, now), maxlen=EVENTS_MAXLEN, approximate=True)

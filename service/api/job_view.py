@@ -34,6 +34,7 @@ def public_job(record: JobRecord) -> Job:
         level=record.level,
         progress=record.progress,
         message=record.message,
+        eta_s=record.eta_s,
         params=record.params,
         queue=record.queue,  # type: ignore[arg-type]
         scene=record.scene,  # type: ignore[arg-type]

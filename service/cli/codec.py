@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-views", type=int, help="cameras the report scores (fitted on nothing)")
     p.add_argument("--seed", type=int)
     p.add_argument("--no-mirrors", action="store_true", help="baseline: the codec alone")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else plain lines)")
     p.set_defaults(func=_compress)
 
     d = sub.add_parser("decompress", help="decode a .symgs archive to a scene file (format by extension)")
@@ -66,31 +66,19 @@ def config_from_args(args: argparse.Namespace) -> CompressConfig:
 
 def _compress(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from symgs_core.pipeline import compress
+
+    from .local_progress import LocalProgress
 
     if not args.scene.is_file():
         raise CliError(f"scene file not found: {args.scene}")
     if args.images is not None and not args.images.is_dir():
         raise CliError(f"images folder not found: {args.images}")
     config = config_from_args(args)
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>3.0f}%"),
-        TimeElapsedColumn(),
-        console=console,
-        disable=args.quiet,
-    ) as bar:
-        task = bar.add_task("compress", total=1.0)
-
-        def on_progress(event) -> None:  # noqa: ANN001 - ProgressEvent
-            bar.update(task, completed=event.fraction, description=f"{event.stage}: {event.message}"[:60])
-
+    with LocalProgress(Console(stderr=True), quiet=args.quiet) as progress:
         try:
-            result = compress(args.scene, images=args.images, config=config, progress=on_progress)
+            result = compress(args.scene, images=args.images, config=config, progress=progress)
         except ValueError as exc:  # PlyError, DatasetError and bad settings all say what is wrong
             raise CliError(str(exc)) from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedCo
 from rich.table import Table
 
 from api_schemas import Job, JobEvent
+from symgs_core.progress import format_seconds
 
 from ..client import SymgsClient
 
@@ -20,8 +21,16 @@ def job_progress(console: Console) -> Progress:
         TextColumn("{task.percentage:>3.0f}%"),
         TextColumn("{task.fields[status]}"),
         TimeElapsedColumn(),
+        TextColumn("{task.fields[left]}"),
         console=console,
     )
+
+
+def _left(event: JobEvent) -> str:
+    """The worker's estimate of the time left, while the job runs."""
+    if event.state != "running":
+        return ""
+    return f"left {format_seconds(event.eta_s)}"
 
 
 def _status(event: JobEvent) -> str:
@@ -37,12 +46,13 @@ def follow(client: SymgsClient, jobs: dict[str, str], console: Console) -> dict[
     errors: list[BaseException] = []
     with job_progress(console) as progress:
         tasks = {
-            job_id: progress.add_task("", total=1.0, label=label, status="queued") for job_id, label in jobs.items()
+            job_id: progress.add_task("", total=1.0, label=label, status="queued", left="")
+            for job_id, label in jobs.items()
         }
 
         def run(job_id: str, task: TaskID) -> None:
             def update(event: JobEvent) -> None:
-                progress.update(task, completed=event.progress, status=_status(event))
+                progress.update(task, completed=event.progress, status=_status(event), left=_left(event))
 
             try:
                 finals[job_id] = client.wait(job_id, on_event=update)

@@ -91,10 +91,12 @@ class Watched:
 
 _RECORD_PROGRESS = """() => {
   window.__progress = [];
+  window.__left = [];
   const record = (bar) => window.__progress.push([bar.dataset.jobId, bar.hasAttribute("value") ? bar.value : null]);
   new MutationObserver((mutations) => {
     for (const m of mutations) {
       if (m.type === "attributes") record(m.target);
+      else if (m.target.classList?.contains("eta")) window.__left.push(m.target.textContent);
       else for (const node of m.addedNodes) node.querySelectorAll?.("progress").forEach(record);
     }
   }).observe(document.querySelector("#jobs tbody"),
@@ -141,6 +143,10 @@ def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Pat
     values = [v for jid, v in page.evaluate("window.__progress") if jid == job_id and v is not None]
     assert values == sorted(values), values
     assert values[-1] == 1.0 and len(set(values)) >= 3 and any(0 < v < 1 for v in values), values
+    # The time left, as the worker estimates it, counted down between reports; none once the job is done.
+    left = page.evaluate("window.__left")
+    assert any(re.fullmatch(r"\d+:\d\d left", text) for text in left), left
+    assert row.locator(".eta").inner_text() == ""
 
     with client_for(stack, KEY_A) as api:
         job = api.get(f"/v1/jobs/{job_id}").json()
@@ -177,6 +183,7 @@ def test_submit_watch_and_inspect_a_job(stack, browser: Browser, scene_path: Pat
         page.get_by_role("link", name="Compressed archive (.symgs)").click()
     assert Path(download.value.path()).read_bytes() == archive
     assert page.locator("#cancel").is_hidden()
+    assert page.locator("#overall-eta").inner_text() == ""
     page.evaluate(_IMAGES_DECODED)
     page.screenshot(path=tmp_path / "job.png", full_page=True)
 

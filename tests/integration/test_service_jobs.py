@@ -74,6 +74,11 @@ def test_events_arrive_in_order_and_replay(done_job: dict, api_a: httpx.Client) 
     progress = [e["progress"] for e in events]
     assert progress == sorted(progress) and progress[-1] == 1.0
     assert {e["stage"] for e in events if e["kind"] == "progress"} >= {"load", "levels", "encode"}
+    # The time left: unknown in state events and in the first seconds of the run, then estimates, never negative
+    left = [(e["time"], e["eta_s"]) for e in events if e["kind"] == "progress" and e["eta_s"] is not None]
+    assert all(e["eta_s"] is None for e in events if e["kind"] == "state")
+    assert left and all(eta >= 0 for _, eta in left), left
+    assert left[0][0] - events[1]["time"] >= 2.0  # the worker estimates nothing in a job's first 2 s
 
     middle = len(messages) // 2
     with api_a.stream("GET", url, headers={"Last-Event-ID": messages[middle]["id"]}) as response:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -12,7 +13,8 @@ from symgs_core.ply import load_scene, save_scene
 from symgs_core.synthetic import synthetic_scene
 
 FAST = ["--iterations", "5", "--resolution", "48", "--eval-resolution", "48", "--train-views", "4", "--fit-views", "2",
-        "--eval-views", "2", "--quiet"]
+        "--eval-views", "2"]
+LINE = re.compile(r"^compress: (\w+)(?: L\d+)? +(\d+)%  elapsed \d+:\d\d  left (?:\d+:\d\d|-:--)  ")
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +30,14 @@ def test_compress_decompress_evaluate(scene_file, tmp_path, capsys):
         main(["compress", str(scene_file), "-o", str(archive), "--report", str(report), "--max-levels", "1", *FAST])
         == 0
     )
+    # stderr is not a terminal here: plain progress lines, one per stage at least, ending at 100%
+    lines = capsys.readouterr().err.splitlines()
+    progress = [LINE.match(line) for line in lines]
+    assert lines and all(progress), lines
+    stages = [m.group(1) for m in progress]
+    assert stages[0] == "load" and {"views", "encode", "evaluate"} <= set(stages)
+    assert int(progress[-1].group(2)) == 100
+    assert [int(m.group(2)) for m in progress] == sorted(int(m.group(2)) for m in progress)
     figures = json.loads(report.read_text())
     assert figures["output_bytes"] == archive.stat().st_size
     assert main(["decompress", str(archive), "-o", str(decoded)]) == 0
@@ -50,7 +60,7 @@ def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
     assert main(["compress", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "m.symgs")]) == 2
     not_ply = tmp_path / "not.ply"
     not_ply.write_text("hello")
-    assert main(["compress", str(not_ply), "-o", str(tmp_path / "n.symgs"), *FAST]) == 2
+    assert main(["compress", str(not_ply), "-o", str(tmp_path / "n.symgs"), *FAST, "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
 

@@ -323,3 +323,32 @@ def test_other_elements_are_ignored(tmp_path: Path) -> None:
     elements = [PlyElement.describe(faces, "face"), PlyElement.describe(rows, "vertex")]
     PlyData(elements, text=False).write(str(tmp_path / "mesh.ply"))
     assert_bit_equal(load_scene(tmp_path / "mesh.ply"), expected_scene(cols, 0))
+
+
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+def test_fixed_size_elements_around_the_vertices_are_skipped(tmp_path: Path, byte_order: str) -> None:
+    cols = random_columns(7, 1, seed=10)
+    names = list(cols)
+    np.random.default_rng(11).shuffle(names)
+    rows = np.empty(7, dtype=[(name, f"{byte_order}f4") for name in names])
+    for name in names:
+        rows[name] = cols[name]
+    before = np.array([(1, 2.5, 3), (4, 5.5, 6)], dtype=[("a", "i4"), ("b", "f8"), ("c", "u1")])
+    after = np.array([(7,)], dtype=[("d", "i2")])
+    elements = [PlyElement.describe(before, "camera"), PlyElement.describe(rows, "vertex"),
+                PlyElement.describe(after, "extra")]  # fmt: skip
+    path = tmp_path / "around.ply"
+    PlyData(elements, text=False, byte_order=byte_order).write(str(path))
+    scene, report = read_scene(path)
+    assert report.properties == names
+    assert_bit_equal(scene, expected_scene(cols, 1))
+
+
+def test_the_scene_owns_its_values(tmp_path: Path) -> None:
+    cols = random_columns(50, 2, seed=12)
+    path = write_ply(tmp_path / "s.ply", cols)
+    scene = load_scene(path)
+    path.write_bytes(path.read_bytes()[:-400] + b"\xff" * 400)  # the file changes under a reader that kept it mapped
+    assert_bit_equal(scene, expected_scene(cols, 2))
+    for name, tensor in scene.tensors().items():
+        assert tensor.is_contiguous() and tensor.dtype == torch.float32, name

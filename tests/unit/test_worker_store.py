@@ -4,17 +4,18 @@ leases, and the sweep that recovers jobs of lost workers."""
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from api_schemas import JobParams
+from api_schemas import JobEvent, JobParams
 from service.cli.stack import LocalStack, embedded_redis_server
 from worker.celery_app import make_celery
 from worker.maintenance import SweepReport, expire, recover_dropped, recover_lost, reroute_stranded
-from worker.runner import headline, mark_failed
+from worker.runner import _Progress, headline, mark_failed
 from worker.settings import Settings
 from worker.storage import DirectoryStorage
 from worker.store import JobRecord, JobStore, owner_of
@@ -69,6 +70,30 @@ def test_state_machine(store: JobStore) -> None:
     assert store.count_by_state() == {"queued": 0, "running": 0, "succeeded": 1, "failed": 0, "cancelled": 0}
     kinds = [(f["data"]) for _, f in store.r.xrange(f"symgs:job:{_job(1).id}:events")]
     assert ['"state":"queued"' in k for k in kinds] == [True, False, False]
+
+
+def test_progress_events_carry_the_time_left(store: JobStore) -> None:
+    from symgs_core.progress import ProgressEvent
+
+    job = _job(1)
+    store.create(job)
+    store.transition(job.id, "running")
+    now = [100.0]
+    report = _Progress(store, job.id, lambda: None, clock=lambda: now[0])
+    for t in range(0, 41):  # 1% per second in one stage: thinned to one event per 0.25 s, every one of these kept
+        now[0] = 100.0 + t
+        report(ProgressEvent("levels", 0, t / 100, f"step {t}"))
+    events = [JobEvent.model_validate_json(f["data"]) for _, f in store.r.xrange(f"symgs:job:{job.id}:events")]
+    progress = [e for e in events if e.kind == "progress"]
+    assert len(progress) == 41
+    assert [e.eta_s for e in progress[:2]] == [None, None]  # too early to tell
+    assert [e.eta_s for e in progress[2:]] == [pytest.approx(100.0 - t, abs=0.05) for t in range(2, 41)]
+    record = store.get(job.id)
+    assert record is not None and record.eta_s == pytest.approx(60.0)
+    done = store.transition(job.id, "succeeded", progress=1.0)
+    assert done is not None and done.eta_s is None  # a state change clears the estimate
+    last = json.loads(store.r.xrange(f"symgs:job:{job.id}:events")[-1][1]["data"])
+    assert last["kind"] == "state" and last["eta_s"] is None
 
 
 def test_listing_pages_and_filters(store: JobStore) -> None:

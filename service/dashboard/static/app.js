@@ -186,6 +186,35 @@ export const formatPsnr = (psnr) => (psnr == null ? "\u221e dB" : `${psnr.toFixe
 
 export const formatSeconds = (s) => (s == null ? "\u2013" : s < 10 ? `${s.toFixed(2)} s` : `${s.toFixed(1)} s`);
 
+// "3:05 left" / "1:02:03 left" for the worker's estimate of the time left (eta_s); "" when unknown.
+export function formatLeft(seconds) {
+  if (seconds == null) return "";
+  const s = Math.max(0, Math.ceil(seconds));
+  const [h, m, sec] = [Math.floor(s / 3600), Math.floor((s % 3600) / 60), s % 60];
+  const pad = (x) => String(x).padStart(2, "0");
+  return `${h ? `${h}:${pad(m)}` : m}:${pad(sec)} left`;
+}
+
+// The time left of a running job in an element, counted down between the worker's reports (which can be minutes
+// apart within a long step). The count starts when the report arrives here, so the two clocks need not agree.
+export class TimeLeft {
+  constructor(node) {
+    this.node = node;
+    this.eta = null;
+    this.at = 0;
+  }
+
+  set(state, etaSeconds) {
+    this.eta = state === "running" && etaSeconds != null ? etaSeconds : null;
+    this.at = performance.now();
+    this.render();
+  }
+
+  render() {
+    this.node.textContent = this.eta == null ? "" : formatLeft(this.eta - (performance.now() - this.at) / 1000);
+  }
+}
+
 export function formatAge(unixSeconds, now = Date.now() / 1000) {
   const s = Math.max(0, Math.round(now - unixSeconds));
   if (s < 60) return `${s} s ago`;

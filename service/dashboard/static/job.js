@@ -5,6 +5,7 @@ import {
   AuthError,
   LEVEL_COLOURS,
   TERMINAL,
+  TimeLeft,
   api,
   blobUrl,
   el,
@@ -29,6 +30,8 @@ const CHARTS = {
 const STEP = /step (\d+)\/(\d+)/; // the pipeline's level messages: "level 0: step 80/200 loss 0.0123"
 
 let stream = null;
+const timeLeft = new TimeLeft(document.getElementById("overall-eta"));
+setInterval(() => timeLeft.render(), 1000);
 let resultsShown = false;
 const stages = []; // {name, li, bar, status, start}
 const levels = []; // {level, li, bar, status}
@@ -44,7 +47,8 @@ function setBadge(state) {
   badge.className = `badge state-${state}`;
 }
 
-function setOverall(state, progress, message) {
+function setOverall(state, progress, message, etaSeconds) {
+  timeLeft.set(state, etaSeconds);
   setBadge(state);
   const bar = $("overall");
   if (state === "queued") bar.removeAttribute("value");
@@ -98,7 +102,7 @@ function onLevel(event) {
 }
 
 function onEvent(event) {
-  setOverall(event.state, event.progress, event.message);
+  setOverall(event.state, event.progress, event.message, event.eta_s);
   if (event.kind === "progress") {
     // Leaving the level stage ends its last level.
     if (event.stage !== "levels" && event.level == null) finish(levels[levels.length - 1], "done", null);
@@ -120,7 +124,7 @@ function showJob(job) {
   document.title = `${job.scene.filename} \u00b7 SymGS`;
   $("title").textContent = `${job.scene.filename}`;
   $("progress-section").hidden = false;
-  setOverall(job.state, job.progress, job.message);
+  setOverall(job.state, job.progress, job.message, job.eta_s);
   if (job.cancel_requested && !TERMINAL.has(job.state)) $("message").textContent = "Cancelling\u2026";
   const error = $("error");
   error.hidden = !job.error;

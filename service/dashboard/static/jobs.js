@@ -3,6 +3,7 @@
 import {
   AuthError,
   TERMINAL,
+  TimeLeft,
   api,
   apiKey,
   el,
@@ -45,7 +46,8 @@ function closeStreams() {
 function progressCell(jobId, label) {
   const bar = el("progress", { max: 1, "aria-label": `Progress of ${label}`, "data-job-id": jobId });
   const text = el("span", { className: "pct" });
-  return { td: el("td", { className: "progress-cell" }, bar, text), bar, text };
+  const left = el("span", { className: "eta" });
+  return { td: el("td", { className: "progress-cell" }, bar, text, left), bar, text, left: new TimeLeft(left) };
 }
 
 function newRow(job) {
@@ -66,7 +68,7 @@ function newRow(job) {
   const headers = document.querySelectorAll("#jobs thead th");
   Object.values(cells).forEach((td, i) => td.setAttribute("data-label", headers[i].textContent));
   const tr = el("tr", { "data-job-id": job.id }, ...Object.values(cells));
-  return { tr, cells, bar: progress.bar, pct: progress.text, time: 0, created: job.created_at };
+  return { tr, cells, bar: progress.bar, pct: progress.text, left: progress.left, time: 0, created: job.created_at };
 }
 
 function setState(row, state) {
@@ -76,10 +78,11 @@ function setState(row, state) {
   row.tr.dataset.state = state;
 }
 
-function setProgress(row, state, progress, stage, message) {
+function setProgress(row, state, progress, stage, message, etaSeconds) {
   if (state === "queued") row.bar.removeAttribute("value"); // indeterminate until a worker takes it
   else row.bar.value = progress;
   row.pct.textContent = state === "queued" ? "waiting" : `${Math.round(progress * 100)}%`;
+  row.left.set(state, etaSeconds);
   row.cells.stage.textContent = stage || "\u2013";
   row.cells.stage.title = message || "";
 }
@@ -93,7 +96,8 @@ function showJob(job) {
   if (job.updated_at < row.time) return row; // the event stream already showed something newer
   row.time = job.updated_at;
   setState(row, job.state);
-  setProgress(row, job.state, job.progress, job.state === "failed" ? job.error?.code : job.stage, job.message);
+  const stage = job.state === "failed" ? job.error?.code : job.stage;
+  setProgress(row, job.state, job.progress, stage, job.message, job.eta_s);
   row.cells.input.textContent = formatBytes(job.scene.bytes);
   const m = job.metrics;
   row.cells.ratio.textContent = m ? formatRatio(m.ratio_to_ply) : "\u2013";
@@ -107,7 +111,7 @@ function onEvent(jobId, event) {
   if (!row || event.time < row.time) return;
   row.time = event.time;
   setState(row, event.state);
-  setProgress(row, event.state, event.progress, event.stage, event.message);
+  setProgress(row, event.state, event.progress, event.stage, event.message, event.eta_s);
 }
 
 function follow(jobId) {
@@ -300,6 +304,9 @@ function init() {
   setInterval(() => {
     for (const row of rows.values()) row.cells.age.textContent = formatAge(row.created);
   }, 5000);
+  setInterval(() => {
+    for (const row of rows.values()) row.left.render();
+  }, 1000);
   load();
 }
 
