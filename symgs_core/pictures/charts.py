@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from matplotlib.axes import Axes
-from matplotlib.ticker import EngFormatter, NullFormatter
+from matplotlib.ticker import EngFormatter, LogLocator, NullFormatter
 from matplotlib.transforms import blended_transform_factory
 
 from ..report import Report
@@ -207,6 +207,7 @@ def rate_distortion_png(
     if peers:
         _draw_peers(ax, peers, top, lambda p: p.bytes)
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
     if points[0].label != "baseline (plain codec)":
         ax.axvline(report.baseline_bytes, color="#222222", linestyle=":", label="baseline: the codec on the input")
     ax.xaxis.set_major_formatter(EngFormatter(unit="B"))
