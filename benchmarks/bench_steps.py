@@ -5,8 +5,9 @@ mirrors, pruning or SH reduction; rotations in their canonical frames (``codec.f
 weighted by their renders (``stages.with_sh_weights``), as the pipeline quantises them: ``budget.fit_quantization``
 from ``QuantSteps()`` (one factor for every step), then ``budget.fit_steps`` (balanced steps, common factor, one
 attribute at a time, SH per coefficient or as a palette). Prints a table of each archive's bytes, its PSNR on the
-fitting cameras and on the evaluation cameras (which fitted nothing), and its bytes per section. ``--palette-sizes`` also codes each scene's higher SH bands alone, per coefficient and as palettes of those
-sizes, on the same steps, with the RMS error of each.
+fitting cameras and on the evaluation cameras (which fitted nothing), and its bytes per section. ``--palette-sizes``
+also codes each scene's higher SH bands alone, per coefficient and as palettes of those sizes, on the same steps,
+with the RMS error of each.
 
     python benchmarks/bench_steps.py ../shared/data/padilla_captures_cc_by/plant_113k_sh0.ply --floors 60.36
 """
