@@ -68,10 +68,13 @@ def main() -> None:
         timings["total"].append(t2 - t0)
         timings["cpu"].append(c2 - c0)
     medians = {k: statistics.median(v) for k, v in timings.items()}
-    print(f"{what}: {len(scene):,} Gaussians, archive {len(data):,} bytes ({len(data) / len(scene):.2f} B/G), "
-          f"PLY {len(ply):,} bytes, {args.threads} threads, median of {args.repeats}")  # fmt: skip
-    print(f"decode {medians['decode']:.2f} s + write {medians['write']:.2f} s = {medians['total']:.2f} s wall "
-          f"({medians['cpu']:.2f} s CPU)")  # fmt: skip
+    print("| scene | Gaussians | archive bytes | bytes per Gaussian | PLY bytes | threads | decode (s) | "
+          "PLY bytes (s) | total wall (s) | CPU (s) |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(f"| {what} | {len(scene):,} | {len(data):,} | {len(data) / len(scene):.2f} | {len(ply):,} | {args.threads} | "
+          f"{medians['decode']:.2f} | {medians['write']:.2f} | {medians['total']:.2f} | {medians['cpu']:.2f} |")
+    print()
+    print(f"Medians of {args.repeats} runs.")
 
 
 if __name__ == "__main__":

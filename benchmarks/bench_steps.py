@@ -50,23 +50,23 @@ def _row(scene: str, floor: float, name: str, state: LevelState, fit, views, sec
             f"{seconds:.0f} | {sections} |")  # fmt: skip
 
 
-def palette_rows(sh_rest: np.ndarray, sizes: list[int], steps: tuple[float, ...]) -> list[str]:
-    """Bytes and RMS error of ``sh_rest`` [N, K, 3] per coefficient and as palettes of ``sizes``."""
+def palette_rows(scene: str, sh_rest: np.ndarray, sizes: list[int], steps: tuple[float, ...]) -> list[str]:
+    """Table lines: bytes and RMS error of ``sh_rest`` [N, K, 3] per coefficient and as palettes of ``sizes``."""
     out = []
-    for name, codec in [("per coefficient", ShRestCodec(steps))] + [
+    for label, codec in [("per coefficient", ShRestCodec(steps))] + [
         (f"palette {size:,}", ShPaletteCodec(size, steps)) for size in sizes
     ]:
         coded = codec.encode(sh_rest)
         decoded = codec.decode(coded.payload, sh_rest.shape, coded.params, coded.raw_length)
         rms = float(np.sqrt(np.mean((decoded.astype(np.float64) - sh_rest) ** 2)))
-        out.append(f"  sh_rest {name}: {len(coded.payload):,} B, RMS error {rms:.4f}")
+        out.append(f"| {scene} | {label} | {len(coded.payload):,} | {rms:.4f} |")
     return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scenes", nargs="+", type=Path)
-    parser.add_argument("--floors", required=True, help="comma-separated floor (dB) per scene")
+    parser.add_argument("--floors", required=True, help="comma-separated floor (dB) per scene, or one for all")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--train-views", type=int, default=16)
     parser.add_argument("--fit-views", type=int, default=8)
@@ -75,6 +75,7 @@ def main() -> None:
     parser.add_argument("--palette-step-factor", type=float, default=3.0, help="SH steps: QuantSteps().sh times this")
     args = parser.parse_args()
     floors = [float(f) for f in args.floors.split(",")]
+    floors = floors * len(args.scenes) if len(floors) == 1 else floors
     if len(floors) != len(args.scenes):
         parser.error(f"{len(args.scenes)} scenes but {len(floors)} floors")
     sizes = [int(s) for s in args.palette_sizes.split(",") if s]
@@ -99,9 +100,12 @@ def main() -> None:
         print(_row(path.name, floor, "fitted steps", state, fitted, views, time.perf_counter() - t0), flush=True)
         if sizes and scene.sh_degree:
             steps = QuantSteps().scaled(args.palette_step_factor).sh
-            palettes.append(f"{path.name}:\n" + "\n".join(palette_rows(scene.sh_rest.numpy(), sizes, steps)))
+            palettes += palette_rows(path.name, scene.sh_rest.numpy(), sizes, steps)
     if palettes:
         print()
+        print(f"| scene | higher SH bands coded (steps QuantSteps().sh x {args.palette_step_factor:g}) | bytes | "
+              "RMS error |")  # fmt: skip
+        print("|---|---|---:|---:|")
         print("\n".join(palettes))
 
 
