@@ -20,6 +20,8 @@ import httpx
 from service.cli.stack import LocalStack
 from service.client import SymgsClient
 
+# The pipeline alone: no peers' formats in the job's charts, even where splat-transform is installed.
+WORKERS = {"SYMGS_PEER_SECONDS": "0"}
 TINY = {"iterations": 20, "train_views": 4, "eval_views": 2, "resolution": 64, "max_levels": 1, "device": "cpu"}
 
 
@@ -67,7 +69,7 @@ async def _latency(url: str, key: str | None, scene: bytes, clients: int, reques
 
 
 def _throughput(scene: Path, workers: int, jobs: int) -> dict:
-    with LocalStack() as stack:
+    with LocalStack(env=WORKERS) as stack:
         for _ in range(workers - 1):
             stack.start_worker("cpu")
         with SymgsClient(stack.api_url, stack.api_key) as client:
@@ -86,7 +88,7 @@ def _throughput(scene: Path, workers: int, jobs: int) -> dict:
 def _start_delay(scene: Path, samples: int) -> dict:
     """Submission (created_at) to the worker starting the job (started_at), one job at a time on an idle worker."""
     delays = []
-    with LocalStack() as stack, SymgsClient(stack.api_url, stack.api_key) as client:
+    with LocalStack(env=WORKERS) as stack, SymgsClient(stack.api_url, stack.api_key) as client:
         client.wait(client.submit(scene, params=TINY).id)  # warm-up
         for _ in range(samples):
             job = client.wait(client.submit(scene, params={**TINY, "iterations": 0}).id)

@@ -22,8 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-peers", action="store_true", help="no peers: our runs only")
     p.add_argument("--no-sog", action="store_true", help="leave out SOG (its k-means takes minutes on a CPU)")
     p.add_argument("--no-install", action="store_true", help="do not install splat-transform with npm when missing")
-    p.add_argument("--peer-timeout", type=float, default=300.0, help="seconds per peer conversion")
-    p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds per SOG conversion")
+    p.add_argument("--peer-timeout", type=float, default=300.0, help="seconds per peer (writing and decoding back)")
+    p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds for SOG (writing and decoding back)")
     p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
     p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
     # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.

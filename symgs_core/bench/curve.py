@@ -15,11 +15,12 @@ Point = tuple[float, float]  # (bytes, PSNR dB); PSNR +inf: identical renders
 
 
 def front(points: Iterable[Point]) -> list[Point]:
-    """The finite points no other point beats (fewer or equal bytes at higher or equal PSNR, one strictly), by
+    """The finite points (None: no figure) no other point beats (fewer or equal bytes at higher or equal PSNR, one strictly), by
     increasing PSNR; bytes then increase too."""
-    finite = sorted({(b, p) for b, p in points if math.isfinite(p) and b > 0}, key=lambda x: (x[1], -x[0]))
+    finite = {(b, p) for b, p in points if p is not None and math.isfinite(p) and b > 0}
+    ordered = sorted(finite, key=lambda x: (x[1], -x[0]))
     kept: list[Point] = []
-    for b, p in reversed(finite):  # from the highest PSNR down: keep a point only if it is smaller than all above
+    for b, p in reversed(ordered):  # from the highest PSNR down: keep a point only if it is smaller than all above
         if not kept or b < kept[-1][0]:
             kept.append((b, p))
     return kept[::-1]

@@ -65,11 +65,14 @@ def _half(peer: Peer, source: GaussianScene, target: Path) -> PeerOutput:
 
 
 def _splat_transform(peer: Peer, exe: str, ply: Path, target: Path, timeout: float) -> PeerOutput:
+    """Write ``target`` from ``ply`` and decode it back, both within ``timeout`` seconds together."""
     with tempfile.TemporaryDirectory(prefix="symgs-peer-") as tmp:
         back = Path(tmp) / "decoded.ply"
         try:
             encode = splat_transform.convert(exe, ply, target, peer.options, timeout)
-            decode = splat_transform.convert(exe, target, back, (), timeout)
+            if encode >= timeout:
+                raise subprocess.TimeoutExpired("splat-transform", timeout)
+            decode = splat_transform.convert(exe, target, back, (), timeout - encode)
         except subprocess.TimeoutExpired:
             target.unlink(missing_ok=True)
             return PeerOutput(peer, "timed_out", f"ran past its time limit of {timeout:.0f} s")
@@ -94,7 +97,8 @@ def run_peers(
 ) -> list[PeerOutput]:
     """Every peer of ``peers`` on ``ply`` (whose scene is ``source``), files written into ``out``.
 
-    ``timeout`` seconds per conversion, ``slow_timeout`` for the slow ones (default ``timeout``); with
+    ``timeout`` seconds per peer (writing and decoding back), ``slow_timeout`` for the slow ones (default
+    ``timeout``); with
     ``deadline``, no conversion is given more than the time left, and none starts once it has passed. ``exe`` None:
     splat-transform's peers are reported unavailable with the reason ``unavailable``."""
     out.mkdir(parents=True, exist_ok=True)

@@ -45,6 +45,7 @@ class BenchRow:
     equal_psnr_bytes: float | None = None  # our bytes at this peer's psnr_db, interpolated (never extrapolated)
     equal_psnr_ratio: float | None = None  # bytes / equal_psnr_bytes: > 1 means ours is smaller at equal PSNR
     equal_psnr_other_ratio: float | None = None  # the same on the other rig, at psnr_other_db
+    equal_psnr_object_ratio: float | None = None  # the same on the object's pixels, at psnr_object_db
     claim_holds_other: bool | None = None  # equal_psnr_ratio > 1: does ours stay smaller on the other rig
     # (reaching psnr_other_db - TOLERANCE_DB there in fewer bytes)? None: no claim made
 
@@ -82,6 +83,7 @@ def claims(rows: list[BenchRow]) -> list[dict[str, Any]]:
                 "scene": r.scene, "peer": r.method, "peer_bytes": r.bytes, "peer_psnr_db": r.psnr_db,
                 "our_bytes": r.equal_psnr_bytes, "equal_psnr_ratio": r.equal_psnr_ratio,
                 "peer_psnr_other_db": r.psnr_other_db, "equal_psnr_other_ratio": r.equal_psnr_other_ratio,
+                "equal_psnr_object_ratio": r.equal_psnr_object_ratio,
                 "holds_on_other_cameras": r.claim_holds_other,
             })  # fmt: skip
     return out

@@ -47,8 +47,8 @@ class BenchSettings:
     peers: tuple[Peer, ...] = PEERS
     splat_transform: str | None = None  # the executable; None: its peers are reported unavailable
     unavailable: str = "splat-transform is not installed"
-    peer_timeout: float = 300.0  # seconds per conversion
-    slow_timeout: float = 900.0  # seconds per conversion of a slow peer (SOG on a CPU)
+    peer_timeout: float = 300.0  # seconds per peer (writing its file and decoding it back)
+    slow_timeout: float = 900.0  # the same for a slow peer (SOG on a CPU)
     sweep: int = 6  # at most this many runs of ours added to span the peers' PSNRs
     other_seed: int = 1  # the second rig's seed (the runs' own seed is overrides["seed"], default 0)
     other_views: int = 8
@@ -136,9 +136,10 @@ def _line(row: BenchRow) -> str:
             f"decode {row.decode_s:.2f} s")  # fmt: skip
 
 
-def curve_points(rows: list[BenchRow], scene: str, method: str = OURS, *, other: bool = False) -> list[curve.Point]:
-    """(bytes, PSNR) of ``method``'s runs on ``scene``: on the evaluation rig, or on the other one."""
-    return [(float(r.bytes), r.psnr_other_db if other else r.psnr_db) for r in rows
+def curve_points(rows: list[BenchRow], scene: str, method: str = OURS, field: str = "psnr_db") -> list[curve.Point]:
+    """(bytes, PSNR) of ``method``'s runs on ``scene``; ``field`` names the PSNR: the evaluation rig's (full frame or
+    object), or the other rig's."""
+    return [(float(r.bytes), getattr(r, field)) for r in rows
             if r.scene == scene and r.method == method and r.ok and r.bytes]  # type: ignore[misc]  # fmt: skip
 
 
@@ -189,14 +190,20 @@ def _sweep(scene: _Scene, rows: list[BenchRow], settings: BenchSettings, say: Sa
 def equal_fidelity(rows: list[BenchRow], scene: str, method: str = OURS) -> None:
     """Fill each ok peer row of ``scene`` with our size at its PSNR on ``method``'s curve, and the check of that
     claim on the other rig."""
-    main, other = curve_points(rows, scene, method), curve_points(rows, scene, method, other=True)
+    main, other = curve_points(rows, scene, method), curve_points(rows, scene, method, "psnr_other_db")
+    objects = curve_points(rows, scene, method, "psnr_object_db")
+
+    def ratio(points: list[curve.Point], nbytes: int, psnr: float | None) -> float | None:
+        ours = curve.size_at(points, psnr) if psnr is not None else None
+        return nbytes / ours if ours else None
+
     for r in rows:
         if r.scene != scene or r.role != "peer" or not r.ok or r.bytes is None or r.psnr_db is None:
             continue
         r.equal_psnr_bytes = curve.size_at(main, r.psnr_db)
         r.equal_psnr_ratio = r.bytes / r.equal_psnr_bytes if r.equal_psnr_bytes else None
-        at_other = curve.size_at(other, r.psnr_other_db) if r.psnr_other_db is not None else None
-        r.equal_psnr_other_ratio = r.bytes / at_other if at_other else None
+        r.equal_psnr_other_ratio = ratio(other, r.bytes, r.psnr_other_db)
+        r.equal_psnr_object_ratio = ratio(objects, r.bytes, r.psnr_object_db)
         r.claim_holds_other = None
         if r.equal_psnr_ratio is not None and r.equal_psnr_ratio > 1 and r.psnr_other_db is not None:
             needed = curve.smallest_reaching(other, r.psnr_other_db - TOLERANCE_DB)

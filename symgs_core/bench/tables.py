@@ -18,6 +18,10 @@ def _num(value: float | None, fmt: str) -> str:
     return "-" if value is None else format(value, fmt)
 
 
+def _times(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}x"
+
+
 def _held(value: bool | None) -> str:
     return {None: "-", True: "yes", False: "**no**"}[value]
 
@@ -49,21 +53,19 @@ def equal_table(rows: list[BenchRow]) -> str:
     """One line per scene and peer: the peer's file, our size at its PSNR, and the check on the other cameras."""
     lines = [
         "| scene | peer | peer bytes | peer PSNR (dB) | ours at that PSNR (bytes) | peer / ours | "
-        "peer PSNR, other cameras | peer / ours, other cameras | holds on other cameras |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|",
+        "peer / ours, object pixels | peer PSNR, other cameras | peer / ours, other cameras | holds on other cameras |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         if r.role != "peer":
             continue
         if not r.ok:
-            lines.append(f"| {r.scene} | {r.method} | {r.status.replace('_', ' ')} | - | - | - | - | - | - |")
+            lines.append(f"| {r.scene} | {r.method} | {r.status.replace('_', ' ')} | - | - | - | - | - | - | - |")
             continue
-        ratio = _num(r.equal_psnr_ratio, ".2f") + ("x" if r.equal_psnr_ratio else "")
-        if r.equal_psnr_ratio is None:
-            ratio = "not spanned"
-        other = _num(r.equal_psnr_other_ratio, ".2f") + ("x" if r.equal_psnr_other_ratio else "")
+        ratio = "not spanned" if r.equal_psnr_ratio is None else _times(r.equal_psnr_ratio)
         lines.append(f"| {r.scene} | {r.method} | {r.bytes:,} | {_db(r.psnr_db)} | "
-                     f"{_num(r.equal_psnr_bytes, ',.0f')} | {ratio} | {_db(r.psnr_other_db)} | {other} | "
+                     f"{_num(r.equal_psnr_bytes, ',.0f')} | {ratio} | {_times(r.equal_psnr_object_ratio)} | "
+                     f"{_db(r.psnr_other_db)} | {_times(r.equal_psnr_other_ratio)} | "
                      f"{_held(r.claim_holds_other)} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
