@@ -15,8 +15,8 @@ Point = tuple[float, float]  # (bytes, PSNR dB); PSNR +inf: identical renders
 
 
 def front(points: Iterable[Point]) -> list[Point]:
-    """The finite points (None: no figure) no other point beats (fewer or equal bytes at higher or equal PSNR, one strictly), by
-    increasing PSNR; bytes then increase too."""
+    """The finite points no other point beats (fewer or equal bytes at higher or equal PSNR, one strictly), by
+    increasing PSNR; bytes then increase too. A PSNR of None (no figure) is left out."""
     finite = {(b, p) for b, p in points if p is not None and math.isfinite(p) and b > 0}
     ordered = sorted(finite, key=lambda x: (x[1], -x[0]))
     kept: list[Point] = []
