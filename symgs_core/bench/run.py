@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from ..config import PRESETS, CompressConfig, budget_for_floor, floor_for_budget
+from ..metrics import LOSSLESS_DB
 from ..report import Fidelity
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate, self_supervised_views
@@ -155,7 +156,7 @@ def next_floor(
     evaluation PSNR), corrected by how far our runs' evaluation PSNR has landed from their floors so far; None
     when the curve spans every target."""
     points = curve_points(rows, scene, method)
-    missing = [t for t in targets if math.isfinite(t) and not curve.spans(points, t)]
+    missing = [t for t in targets if t < LOSSLESS_DB and not curve.spans(points, t)]
     if not missing:
         return None
     target = missing[0]

@@ -12,7 +12,8 @@ from collections.abc import Callable, Iterable
 
 from matplotlib.axes import Axes
 
-LOSSLESS_DB = 100.0
+from ..metrics import LOSSLESS_DB
+
 LOSSLESS_LABEL = "lossless"
 
 

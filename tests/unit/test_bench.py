@@ -30,10 +30,11 @@ def oracle(psnr: float) -> float:
 
 
 def test_size_at_psnr_interpolates_log_bytes_exactly_and_never_extrapolates() -> None:
-    points = [(oracle(p), p) for p in (35.0, 41.0, 52.0)] + [(5e5, math.inf)]
+    points = [(oracle(p), p) for p in (35.0, 41.0, 52.0)] + [(5e5, math.inf), (6e5, 191.8)]  # two lossless runs
     for psnr in (35.0, 38.3, 41.0, 47.9, 52.0):
         assert curve.size_at(points, psnr) == pytest.approx(oracle(psnr), rel=1e-12)
     assert curve.size_at(points, 34.9) is None and curve.size_at(points, 52.1) is None  # outside: nothing
+    assert curve.size_at(points, 120.0) is None  # nothing between the lossy runs and float rounding
     assert curve.size_at(points, math.inf) is None and curve.size_at([], 40.0) is None
 
 
