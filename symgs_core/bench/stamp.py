@@ -86,14 +86,14 @@ def stamp(splat_transform: str | None = None) -> dict[str, object]:
     }
 
 
-def describe(info: dict[str, object]) -> str:
-    """One line for under a table."""
+def describe(info: dict[str, object], end_load: list[float] | None = None) -> str:
+    """One line for under a table: commit and date; cores, CPU and load (at the start, and at the end when given);
+    tool versions."""
     m = info["machine"]
-    assert isinstance(m, dict)
-    load = m.get("load")
     tools = info["tools"]
-    assert isinstance(tools, dict)
+    assert isinstance(m, dict) and isinstance(tools, dict)
+    loads = [(m.get("load"), "at the start"), (end_load, "at the end")]
+    load = ", ".join(f"{' / '.join(f'{v:.1f}' for v in avg)} {when}" for avg, when in loads if avg)
     versions = ", ".join(f"{k} {v}" for k, v in tools.items() if v != "absent")
-    at_load = f", load {' / '.join(f'{v:.1f}' for v in load)}" if load else ""
-    return (f"commit {info['commit']}, {info['date']}; {m.get('cores')} cores ({m.get('cpu')}){at_load}; "
-            f"{versions}")  # fmt: skip
+    return (f"commit {info['commit']}, {info['date']}; {m.get('cores')} cores ({m.get('cpu')})"
+            f"{f', load average {load}' if load else ''}; {versions}")  # fmt: skip
