@@ -209,13 +209,13 @@ def run(bench: Bench, argv: list[str], out: Path, quick: bool) -> tuple[dict[str
     tool = splat_transform.find()
     info = stamp.stamp(splat_transform.version(tool) if tool and bench.name == "codec" else None)
     t0 = time.perf_counter()
-    done = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
+    # Written as it runs, so a long benchmark can be followed (tail -f bench-out/<entry>/stdout.txt).
+    with open(out / "stdout.txt", "w") as stdout, open(out / "stderr.txt", "w") as stderr:
+        done = subprocess.run(argv, cwd=ROOT, env=env, stdout=stdout, stderr=stderr, text=True)
     seconds = time.perf_counter() - t0
-    (out / "stdout.txt").write_text(done.stdout)
-    (out / "stderr.txt").write_text(done.stderr)
     if done.returncode != 0:
-        raise RuntimeError(f"exit status {done.returncode}: {done.stderr.strip()[-1500:]}")
-    tables = tables_of(done.stdout, bench.notes)
+        raise RuntimeError(f"exit status {done.returncode}: {(out / 'stderr.txt').read_text().strip()[-1500:]}")
+    tables = tables_of((out / "stdout.txt").read_text(), bench.notes)
     if len(tables) < len(bench.tables):
         raise RuntimeError(f"printed {len(tables)} tables, {len(bench.tables)} expected; see {out / 'stdout.txt'}")
     line = _stamp_line(info, stamp.machine()["load"], argv, bench.env, seconds, quick)  # type: ignore[arg-type]
