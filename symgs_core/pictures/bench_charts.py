@@ -77,13 +77,16 @@ def _scene_chart(rows: Sequence[BenchRow], scene: str, x: Callable[[BenchRow], f
                 ax.annotate(r.preset, (x(r), ymap(r.psnr_db)), textcoords="offset points", xytext=(5, -9), fontsize=6,
                             color=colour)  # fmt: skip
     if equal:
+        labelled: list[float] = []
         for r in shown:
             if r.role == "peer" and r.equal_psnr_bytes and r.equal_psnr_ratio:
                 y = ymap(r.psnr_db)
                 ax.plot([r.equal_psnr_bytes, r.bytes], [y, y], color="#444444", linestyle=":", linewidth=0.9)
                 ax.plot([r.equal_psnr_bytes], [y], marker="|", markersize=9, color="#444444")
-                ax.annotate(f"{r.equal_psnr_ratio:.2f}x ours", (r.bytes, y), textcoords="offset points",
-                            xytext=(7, 3), fontsize=6, color="#444444")  # fmt: skip
+                stacked = sum(abs(y - other) < 1.5 for other in labelled)  # peers at about the same PSNR
+                labelled.append(y)
+                ax.annotate(f"ours {r.equal_psnr_ratio:.2f}x smaller", (r.bytes, y), textcoords="offset points",
+                            xytext=(8, 2 + 9 * stacked), fontsize=6, color=method_style(r.method)[0])  # fmt: skip
     _log_x(ax, xlabel)
     _finish(ax, title)
     return png_bytes(fig)
