@@ -65,7 +65,7 @@ class BenchSettings:
 
 def scene_name(ply: Path) -> str:
     """Trainers name their output point_cloud.ply or fused.ply: the folder then names the scene."""
-    return ply.parent.name if ply.stem in ("point_cloud", "fused", "scene") else ply.stem.removesuffix(".ply")
+    return ply.parent.name if ply.stem in ("point_cloud", "fused", "scene") else ply.stem
 
 
 @dataclass

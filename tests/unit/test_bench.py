@@ -17,9 +17,9 @@ from service.cli.codec import HALF_PLY
 from symgs_core.bench import curve
 from symgs_core.bench.half_ply import EXTENSION, HalfPlyError, read_half_ply, write_half_ply
 from symgs_core.bench.rows import REQUIRED, SCHEMA, TOLERANCE_DB, BenchRow, claims
-from symgs_core.bench.run import OURS, equal_fidelity, next_floor
+from symgs_core.bench.run import OURS, BenchSettings, bench_scene, equal_fidelity, next_floor
 from symgs_core.config import CompressConfig, budget_for_floor
-from symgs_core.pipeline import decompress
+from symgs_core.pipeline import compress, decompress
 from symgs_core.ply import save_scene
 from symgs_core.synthetic import synthetic_scene
 
@@ -156,6 +156,21 @@ def test_bench_writes_bench_json_files_and_charts(tmp_path: Path, monkeypatch: p
             assert image.format == "PNG" and image.size == size, name
     tables = (out / "bench.md").read_text()
     assert "| tiny | float16 ply + zstd |" in tables and "| tiny | symgs no mirrors | balanced |" in tables
+
+
+def test_a_rows_psnr_is_the_one_its_report_states(tmp_path: Path) -> None:
+    """The bench's evaluation rig is the pipeline's own evaluation cameras (which fitted nothing)."""
+    ply = tmp_path / "tiny.ply"
+    save_scene(synthetic_scene("global", n=200, seed=5, sh_degree=1).scene, ply)
+    tiny = {"iterations": 2, "max_levels": 1, "train_views": 2, "fit_views": 2, "eval_views": 3, "resolution": 24,
+            "eval_resolution": 24, "device": "cpu"}  # fmt: skip
+    settings = BenchSettings(presets=("small",), mirrors=(False,), overrides=tiny, peers=(), sweep=0, other_views=2)
+    (row,) = bench_scene(ply, tmp_path / "out", settings)
+    report = compress(ply, config=settings.config("small", use_mirrors=False)).report
+    assert row.bytes == report.output_bytes and row.floor_db == pytest.approx(report.psnr_floor)
+    assert row.psnr_db == pytest.approx(report.fidelity.psnr, abs=1e-6)
+    assert row.psnr_object_db == pytest.approx(report.fidelity.psnr_object, abs=1e-6)
+    assert row.psnr_other_db != pytest.approx(row.psnr_db, abs=1e-6)  # another rig: other cameras
 
 
 def test_bench_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
