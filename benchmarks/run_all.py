@@ -202,8 +202,9 @@ def _stamp_line(info: dict, end_load: list[float] | None, argv: list[str], env: 
             f"Command: `{_shown(argv, env)}`</sub>")  # fmt: skip
 
 
-def run(bench: Bench, argv: list[str], out: Path, quick: bool) -> tuple[dict[str, str], float]:
-    """Run one benchmark; returns its blocks' new content and its wall seconds. RuntimeError when it fails."""
+def run(bench: Bench, argv: list[str], out: Path, quick: bool) -> tuple[dict[str, str], float, dict]:
+    """Run one benchmark; returns its blocks' new content, its wall seconds and the stamp taken as it started.
+    RuntimeError when it fails."""
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **bench.env, "PYTHONPATH": str(ROOT)}
     tool = splat_transform.find()
@@ -219,13 +220,12 @@ def run(bench: Bench, argv: list[str], out: Path, quick: bool) -> tuple[dict[str
     if len(tables) < len(bench.tables):
         raise RuntimeError(f"printed {len(tables)} tables, {len(bench.tables)} expected; see {out / 'stdout.txt'}")
     line = _stamp_line(info, stamp.machine()["load"], argv, bench.env, seconds, quick)  # type: ignore[arg-type]
-    return {name: f"{table}\n\n{line}\n" for name, table in zip(bench.tables, tables)}, seconds
+    return {name: f"{table}\n\n{line}\n" for name, table in zip(bench.tables, tables)}, seconds, info
 
 
-def record_time(times: dict, bench: str, quick: bool, seconds: float, scenes: list[str] | None) -> None:
+def record_time(times: dict, bench: str, quick: bool, seconds: float, info: dict, scenes: list[str] | None) -> None:
     times.setdefault("quick" if quick else "full", {})[bench] = {
-        "seconds": round(seconds, 1), "commit": stamp.commit(), "date": stamp.stamp()["date"],
-        "scenes": scenes or "all",
+        "seconds": round(seconds, 1), "commit": info["commit"], "date": info["date"], "scenes": scenes or "all",
     }  # fmt: skip
 
 
@@ -292,13 +292,13 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"{bench.name}: {_shown(argv_, bench.env)}", flush=True)
         try:
-            blocks, seconds = run(bench, argv_, out, args.quick)
+            blocks, seconds, info = run(bench, argv_, out, args.quick)
         except RuntimeError as exc:
             print(f"{bench.name}: FAILED, its blocks are left as they were: {exc}", flush=True)
             failed.append(bench.name)
             continue
         ran += seconds
-        record_time(times, bench.name, args.quick, seconds, scenes if bench.scenes else None)
+        record_time(times, bench.name, args.quick, seconds, info, scenes if bench.scenes else None)
         TIMES.write_text(json.dumps(times, indent=1) + "\n")
         text = target.read_text()
         for name, body in blocks.items():
