@@ -22,3 +22,8 @@ test: install
 
 lint: install
 	$(VENV)/bin/ruff check .
+
+# Every table of BENCHMARKS.md, measured at the checked-out commit (hours on 2 cores); QUICK=1: a short subset written
+# to bench-out/BENCHMARKS.quick.md; ONLY=codec,decode: some entries (benchmarks/run_all.py --list names them).
+bench: install
+	$(PY) benchmarks/run_all.py $(if $(QUICK),--quick) $(if $(ONLY),--only $(ONLY))

@@ -20,6 +20,8 @@ import httpx
 from service.cli.stack import LocalStack
 from service.client import SymgsClient
 
+# The pipeline alone: no peers' formats in the job's charts, even where splat-transform is installed.
+WORKERS = {"SYMGS_PEER_SECONDS": "0"}
 TINY = {"iterations": 20, "train_views": 4, "fit_views": 2, "eval_views": 2, "resolution": 64, "eval_resolution": 64,
         "max_levels": 1, "device": "cpu"}
 
@@ -68,7 +70,7 @@ async def _latency(url: str, key: str | None, scene: bytes, clients: int, reques
 
 
 def _throughput(scene: Path, workers: int, jobs: int) -> dict:
-    with LocalStack() as stack:
+    with LocalStack(env=WORKERS) as stack:
         for _ in range(workers - 1):
             stack.start_worker("cpu")
         with SymgsClient(stack.api_url, stack.api_key) as client:
@@ -87,7 +89,7 @@ def _throughput(scene: Path, workers: int, jobs: int) -> dict:
 def _start_delay(scene: Path, samples: int) -> dict:
     """Submission (created_at) to the worker starting the job (started_at), one job at a time on an idle worker."""
     delays = []
-    with LocalStack() as stack, SymgsClient(stack.api_url, stack.api_key) as client:
+    with LocalStack(env=WORKERS) as stack, SymgsClient(stack.api_url, stack.api_key) as client:
         client.wait(client.submit(scene, params=TINY).id)  # warm-up
         for _ in range(samples):
             job = client.wait(client.submit(scene, params={**TINY, "iterations": 0}).id)
@@ -119,20 +121,22 @@ def main() -> int:
             latency = asyncio.run(posted)
         finally:
             stack.cleanup()
-        print(f"API latency, {latency['clients']} concurrent clients, {latency['scene_bytes']:,}-byte scene uploads:")
-        for name, label in (("post", "POST /v1/jobs"), ("get", "GET /v1/jobs/{id}")):
-            f = latency[name]
-            p50, p99, rate = f['p50_ms'], f['p99_ms'], f['per_s']
-            print(f"  {label:18} n={f['n']:5}  p50 {p50:7.1f} ms  p99 {p99:7.1f} ms  {rate:7.1f}/s")
         delay = _start_delay(scene, args.samples)
-        print(f"submission to start: median {delay['p50_ms']:.0f} ms, max {delay['max_ms']:.0f} ms "
-              f"({delay['samples']} jobs)")  # fmt: skip
-        throughput = []
-        for workers in (1, 2):
-            t = _throughput(scene, workers, args.jobs)
-            throughput.append(t)
-            print(f"throughput, {t['workers']} CPU worker(s): {t['jobs']} jobs in {t['seconds']:.1f} s = "
-                  f"{t['jobs_per_min']:.1f} jobs/min")  # fmt: skip
+        throughput = [_throughput(scene, workers, args.jobs) for workers in (1, 2)]
+
+    scene_kb = latency["scene_bytes"] / 1000
+    print("| what | figure |")
+    print("| --- | --- |")
+    for name, label in (("post", f"`POST /v1/jobs` ({scene_kb:.0f} kB multipart upload, header checks, store, queue)"),
+                        ("get", "`GET /v1/jobs/{id}`")):  # fmt: skip
+        f = latency[name]
+        print(f"| {label}, {latency['clients']} concurrent clients, {f['n']} requests | p50 {f['p50_ms']:,.0f} ms, "
+              f"p99 {f['p99_ms']:,.0f} ms, {f['per_s']:.0f} requests/s |")  # fmt: skip
+    print(f"| submission to a worker starting the job (`started_at - created_at`, idle worker, {delay['samples']} "
+          f"jobs) | median {delay['p50_ms']:.0f} ms, max {delay['max_ms']:.0f} ms |")  # fmt: skip
+    for t in throughput:
+        print(f"| job throughput, {t['workers']} CPU worker(s) ({t['jobs']} jobs after a warm-up job each) | "
+              f"{t['seconds']:.1f} s, {t['jobs_per_min']:.1f} jobs/min |")  # fmt: skip
 
     figures = {"latency": latency, "start_delay": delay, "throughput": throughput}
     if args.json is not None:

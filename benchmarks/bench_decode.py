@@ -93,11 +93,14 @@ def main() -> None:
         timings["total"].append(t2 - t0)
         timings["cpu"].append(c2 - c0)
     medians = {k: statistics.median(v) for k, v in timings.items()}
-    print(f"{what}: {len(decoded):,} Gaussians, archive {len(data):,} bytes ({len(data) / len(decoded):.2f} B/G), "
-          f"PLY {len(ply):,} bytes, {args.threads} threads, median of {args.repeats}")  # fmt: skip
-    print(f"decode {medians['decode']:.2f} s + write {medians['write']:.2f} s = {medians['total']:.2f} s wall "
-          f"({medians['cpu']:.2f} s CPU); peak resident memory {peak_mib():,.0f} MiB (making the archive: "
-          f"{setup_peak:,.0f} MiB)")  # fmt: skip
+    print("| scene | Gaussians | archive bytes | bytes per Gaussian | PLY bytes | threads | decode (s) | "
+          "PLY bytes (s) | total wall (s) | CPU (s) | peak RSS (MiB) |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(f"| {what} | {len(decoded):,} | {len(data):,} | {len(data) / len(decoded):.2f} | {len(ply):,} | "
+          f"{args.threads} | {medians['decode']:.2f} | {medians['write']:.2f} | {medians['total']:.2f} | "
+          f"{medians['cpu']:.2f} | {peak_mib():,.0f} |")  # fmt: skip
+    print()
+    print(f"Medians of {args.repeats} runs; making the archive peaked at {setup_peak:,.0f} MiB.")
     if args.detect:
         from symgs_core.detect import DetectConfig, detect
 
@@ -105,8 +108,9 @@ def main() -> None:
         t0 = time.perf_counter()
         with torch.no_grad():
             mirrors = detect(decoded, DetectConfig(max_mirrors=4))
-        print(f"detect {time.perf_counter() - t0:.1f} s, {len(mirrors)} mirror(s); peak resident memory of the "
-              f"process {peak_mib():,.0f} MiB")  # fmt: skip
+        print()
+        print(f"Then detection in the same process: {time.perf_counter() - t0:.1f} s, {len(mirrors)} mirror(s); "
+              f"peak resident memory of the process {peak_mib():,.0f} MiB.")  # fmt: skip
 
 
 if __name__ == "__main__":

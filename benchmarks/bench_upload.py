@@ -47,11 +47,12 @@ def main() -> None:
     if figures["status"] != 202:
         sys.exit(f"upload refused: {figures['status']} {job}")
     storage = "S3 (moto server)" if args.s3 else "directory"
-    print(f"{figures['body_bytes']:,} bytes ({figures['gaussians']:,} Gaussians, SH 3) to {storage} storage in "
-          f"{figures['seconds']:.1f} s ({figures['mb_per_s']:.0f} MB/s); API resident memory: "
-          f"{figures['rss_before_mib']:.0f} MiB before, peak {figures['rss_peak_mib']:.0f} MiB sampled during the "
-          f"upload, VmHWM {figures['hwm_mib']:.0f} MiB; job {job['id']} {job['state']}")  # fmt: skip
-
+    print("| upload bytes | Gaussians (SH 3) | storage | seconds | MB/s | API RSS before (MiB) | peak sampled (MiB) | "
+          "VmHWM (MiB) | job |")  # fmt: skip
+    print("|---:|---:|---|---:|---:|---:|---:|---:|---|")
+    print(f"| {figures['body_bytes']:,} | {figures['gaussians']:,} | {storage} | {figures['seconds']:.1f} | "
+          f"{figures['mb_per_s']:.0f} | {figures['rss_before_mib']:.0f} | {figures['rss_peak_mib']:.0f} | "
+          f"{figures['hwm_mib']:.0f} | {job['state']} |")  # fmt: skip
 
 if __name__ == "__main__":
     main()

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from symgs_core.bench import splat_transform
 from symgs_core.export import read_glb, write_glb, write_sog
 from symgs_core.ply import load_scene
 from symgs_core.scene import GaussianScene
@@ -48,11 +49,13 @@ def convert(tool: str, source: Path, target: Path) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("inputs", nargs="+", type=Path, help=".symgs archives or .ply scenes")
-    parser.add_argument("--splat-transform", required=True, help="the splat-transform executable (3.7)")
+    parser.add_argument("--splat-transform", help="the splat-transform executable (default: the pinned one, installed "
+                        "on first use)")
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--peer", action="store_true", help="also splat-transform's own SOG (a CPU k-means: slow)")
     args = parser.parse_args()
+    args.splat_transform = args.splat_transform or splat_transform.find() or splat_transform.install()
     print("| input | Gaussians | SH | our .sog | write s | read back by splat-transform | our .glb | write s | .glb "
           "read back |" + (" splat-transform .sog | its write s | read back |" if args.peer else ""))
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if args.peer else ""))

@@ -27,6 +27,11 @@ def _check_pair(img: Tensor, ref: Tensor) -> None:
         raise ValueError(f"expected images [H, W, 3] or [B, H, W, 3], got {tuple(img.shape)}")
 
 
+# A PSNR at or above this is float rounding, not a loss: charts draw it with the lossless results and rate-distortion
+# curves do not interpolate towards it.
+LOSSLESS_DB = 100.0
+
+
 def mse_to_psnr(mse: float) -> float:
     """PSNR in dB of a mean squared error on [0, 1] images; +inf for a perfect match."""
     return math.inf if mse <= 0 else -10.0 * math.log10(mse)

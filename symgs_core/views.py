@@ -147,36 +147,56 @@ def dataset_views(
     ``resolution``: the test split (at most ``eval`` images, evenly spaced) evaluates, ``fit`` training images,
     evenly spaced, fit, and the other training images train. The object's pixels are where ``scene`` (the
     uncompressed upload) renders opaque."""
-    from .datasets import dataset_frames, load_dataset
-    from .render import render
 
-    device = scene.device
+    from .datasets import load_dataset
+
     bg = tuple(float(v) for v in background)
-    first = dataset_frames(folder, "train")[0].camera
-    scale = min(1.0, resolution / max(first.width, first.height))
-
-    @torch.no_grad()
-    def view(camera: Camera, image: Tensor) -> View:
-        camera, image = camera.to(device), image.to(device)
-        return View(camera, image, render(scene, camera, background).alpha >= OBJECT_ALPHA)
-
+    scale, width = _photo_scale(folder, resolution)
     photos = load_dataset(folder, split="train", background=bg, scale=scale)
     if len(photos) < 2:
         raise ValueError(f"{folder}: at least 2 training images are needed (one to train, one to fit)")
     count = min(fit, len(photos) // 2)
     fit_index = {round((i + 0.5) * len(photos) / count - 0.5) for i in range(count)}
-    tests = load_dataset(folder, split="test", background=bg, max_views=eval, scale=scale)
-    width = round(max(first.width, first.height) * scale)
 
     def described(name: str, n: int) -> CameraSet:
         return CameraSet(name, n, "photographs", width, None)
 
-    train_views = [view(p.camera, p.image) for i, p in enumerate(photos) if i not in fit_index]
-    fit_views = [view(p.camera, p.image) for i, p in enumerate(photos) if i in fit_index]
-    eval_views = [view(p.camera, p.image) for p in tests]
+    views = [_photo_view(scene, p.camera, p.image, background) for p in photos]
+    train_views = [v for i, v in enumerate(views) if i not in fit_index]
+    fit_views = [v for i, v in enumerate(views) if i in fit_index]
+    eval_views = dataset_eval_views(folder, scene, eval=eval, resolution=resolution, background=background)
     sets = (described("training", len(train_views)), described("fitting", len(fit_views)),
             described("evaluation", len(eval_views)))  # fmt: skip
     return ViewSet(train_views, fit_views, eval_views, background, sets)
+
+
+def _photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
+    """The scale that brings the training photographs' longest side to ``resolution`` (never up), and that side."""
+    from .datasets import dataset_frames
+
+    first = dataset_frames(folder, "train")[0].camera
+    scale = min(1.0, resolution / max(first.width, first.height))
+    return scale, round(max(first.width, first.height) * scale)
+
+
+@torch.no_grad()
+def _photo_view(scene: GaussianScene, camera: Camera, image: Tensor, background: Tensor) -> View:
+    from .render import render
+
+    camera, image = camera.to(scene.device), image.to(scene.device)
+    return View(camera, image, render(scene, camera, background).alpha >= OBJECT_ALPHA)
+
+
+def dataset_eval_views(
+    folder: str | Path, scene: GaussianScene, *, eval: int, resolution: int, background: Tensor
+) -> list[View]:
+    """The evaluation set of ``dataset_views`` alone (its test split), without loading the training photographs."""
+    from .datasets import load_dataset
+
+    scale, _ = _photo_scale(folder, resolution)
+    bg = tuple(float(v) for v in background)
+    tests = load_dataset(folder, split="test", background=bg, max_views=eval, scale=scale)
+    return [_photo_view(scene, p.camera, p.image, background) for p in tests]
 
 
 @torch.no_grad()

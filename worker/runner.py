@@ -165,7 +165,8 @@ def run_job(
     heartbeat.start()
     failed = True
     try:
-        outcome = _run_leased(record, store=store, storage=storage, heartbeat=heartbeat, device=device)
+        outcome = _run_leased(record, store=store, storage=storage, settings=settings, heartbeat=heartbeat,
+                              device=device)  # fmt: skip
         failed = False
         return outcome
     finally:
@@ -176,7 +177,7 @@ def run_job(
 
 
 def _run_leased(
-    record: JobRecord, *, store: JobStore, storage: Storage, heartbeat: _Heartbeat, device: str
+    record: JobRecord, *, store: JobStore, storage: Storage, settings: Settings, heartbeat: _Heartbeat, device: str
 ) -> Outcome:
     from symgs_core.config import CompressConfig
     from symgs_core.pipeline import compress
@@ -216,6 +217,12 @@ def _run_leased(
             store.transition(job_id, "cancelled", message="cancelled by the client")
             return "cancelled"
         work.save_checkpoints()
+        if result.images and settings.peer_seconds > 0 and not heartbeat.lost.is_set():
+            from .peers import peer_charts
+
+            store.progress(job_id, stage="peers", level=None, fraction=1.0, message="running the peers' formats")
+            result.images.update(peer_charts(folder / "upload" / "scene.ply", images, result.report,
+                                             seconds=settings.peer_seconds, work=folder / "peers"))  # fmt: skip
     if heartbeat.lost.is_set():
         return "lost"  # the worker that took the job over writes the same files
     _write_results(storage, record, result)

@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     lease_seconds: float = Field(30.0, gt=0)  # a running job whose worker stayed silent this long is re-queued
     max_attempts: int = Field(3, ge=1)  # runs of one job before it fails with code worker_lost
     maintenance_seconds: float = Field(10.0, gt=0)  # period of the worker's re-queue and expiry sweep
+    # Seconds a job may spend running the peers' formats (splat-transform, when installed) on its upload, to draw
+    # them in its charts; 0 turns that off.
+    peer_seconds: float = Field(60.0, ge=0)
 
     @field_validator("storage")
     @classmethod

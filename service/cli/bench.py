@@ -1,61 +1,103 @@
-"""`symgs bench`: presets with and without mirrors against the peers' formats, tables and charts (local, no server)."""
+"""`symgs bench`: our presets with and without mirrors, a budget sweep, and the peers' formats, on size, fidelity and
+time; writes bench.json, bench.md, charts and every output file (local, no server)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from symgs_core.config import PRESET_NAMES
+
 from .parser import CliError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmark presets and peers on scenes: CSV, Markdown and two PNG charts")
+    p = sub.add_parser("bench", help="benchmark presets, a budget sweep and the peers' formats: bench.json and charts")
     p.add_argument("scenes", type=Path, nargs="+", help="scenes (.ply)")
-    p.add_argument("--presets", default="small,balanced,high",
-                   help="comma-separated presets (default all lossy; empty: only the peers and the matched run)")
+    p.add_argument("--out", type=Path, required=True, help="folder for bench.json, bench.md, charts/ and files/")
+    p.add_argument("--presets", default=",".join(PRESET_NAMES), help="comma-separated presets (default: all)")
     p.add_argument("--mirrors", choices=["both", "on", "off"], default="both", help="runs with and/or without mirrors")
-    p.add_argument("--out", type=Path, default=Path("bench-out"), help="folder for bench.csv, bench.md and charts")
-    p.add_argument("--no-peers", action="store_true", help="skip .spz, compressed PLY and SOG")
-    p.add_argument("--no-match", action="store_true", help="skip the run matched to the .spz v3 PSNR")
-    p.add_argument("--peer-cache", type=Path, help="keep and reuse the peers' results in this folder")
-    p.add_argument("--peer-timeout", type=float, default=1800.0, help="seconds before a peer's run is given up")
-    p.add_argument("--resolution", type=int, default=192)
-    p.add_argument("--train-views", type=int, default=24)
-    p.add_argument("--eval-views", type=int, default=8)
-    p.add_argument("--iterations", type=int, default=50, help="optimisation steps per mirror level")
-    p.add_argument("--max-levels", type=int, default=2)
+    p.add_argument("--sweep", type=int, default=6,
+                   help="at most this many runs of ours at budgets aimed at the peers' PSNRs (0: none)")
+    p.add_argument("--no-peers", action="store_true", help="no peers: our runs only")
+    p.add_argument("--no-sog", action="store_true", help="leave out SOG (its k-means takes minutes on a CPU)")
+    p.add_argument("--no-install", action="store_true", help="do not install splat-transform with npm when missing")
+    p.add_argument("--peer-timeout", type=float, default=300.0, help="seconds per peer (writing and decoding back)")
+    p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds for SOG (writing and decoding back)")
+    p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
+    p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
+    # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.
+    p.add_argument("--iterations", type=int, help="optimisation steps per mirror level")
+    p.add_argument("--max-levels", type=int, help="cap on mirror levels")
+    p.add_argument("--train-views", type=int)
+    p.add_argument("--fit-views", type=int)
+    p.add_argument("--eval-views", type=int)
+    p.add_argument("--resolution", type=int, help="longest side of the training views, pixels")
+    p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
+    p.add_argument("--seed", type=int)
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.set_defaults(func=_bench)
 
 
-def _bench(args: argparse.Namespace) -> int:
-    from symgs_core.bench import bench_scene, write_outputs
-    from symgs_core.config import PRESETS, CompressConfig
+def _splat_transform(args: argparse.Namespace) -> tuple[str | None, str]:
+    """The peer tool to run and, when there is none, why."""
+    from symgs_core.bench import splat_transform
 
-    presets = [p.strip() for p in args.presets.split(",") if p.strip()]
-    unknown = [p for p in presets if p not in PRESETS]
+    if args.no_peers:
+        return None, "peers not asked for"
+    found = splat_transform.find()
+    if found or args.no_install:
+        return found, f"splat-transform {splat_transform.VERSION} is not installed (--no-install)"
+    print(f"installing {splat_transform.PACKAGE} into {splat_transform.cache_folder()}", flush=True)
+    try:
+        return splat_transform.install(), ""
+    except splat_transform.ToolError as exc:
+        return None, str(exc)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from symgs_core.bench.peers import PEERS
+    from symgs_core.bench.run import BenchSettings
+    from symgs_core.bench.suite import run_bench
+    from symgs_core.bench.tables import markdown
+
+    presets = tuple(p.strip() for p in args.presets.split(",") if p.strip())
+    unknown = [p for p in presets if p not in PRESET_NAMES]
     if unknown:
-        raise CliError(f"unknown presets {unknown}; known: {', '.join(PRESETS)}")
+        raise CliError(f"unknown presets {unknown}; known: {', '.join(PRESET_NAMES)}")
     missing = [str(s) for s in args.scenes if not s.is_file()]
     if missing:
         raise CliError(f"scene files not found: {', '.join(missing)}")
+    if args.sweep < 0 or args.other_views < 1 or args.peer_timeout <= 0 or args.sog_timeout <= 0:
+        raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
+    overrides = {
+        "iterations": args.iterations, "max_levels": args.max_levels, "train_views": args.train_views,
+        "fit_views": args.fit_views, "eval_views": args.eval_views, "resolution": args.resolution,
+        "eval_resolution": args.eval_resolution, "seed": args.seed, "device": args.device,
+    }  # fmt: skip
+    exe, why = _splat_transform(args)
+    peers = () if args.no_peers else tuple(p for p in PEERS if not (args.no_sog and p.slow))
+    settings = BenchSettings(
+        presets=presets, mirrors={"both": (True, False), "on": (True,), "off": (False,)}[args.mirrors],
+        overrides={k: v for k, v in overrides.items() if v is not None}, peers=peers, splat_transform=exe,
+        unavailable=why, peer_timeout=args.peer_timeout, slow_timeout=args.sog_timeout, sweep=args.sweep,
+        other_seed=args.other_seed, other_views=args.other_views,
+    )  # fmt: skip
     try:
-        config = CompressConfig.for_preset(
-            resolution=args.resolution, train_views=args.train_views, eval_views=args.eval_views,
-            iterations=args.iterations, max_levels=args.max_levels, device=args.device, pictures=False,
-        )  # fmt: skip
+        settings.config("balanced")
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    mirrors = {"both": (True, False), "on": (True,), "off": (False,)}[args.mirrors]
-    rows = []
-    for scene in args.scenes:
-        try:
-            rows += bench_scene(scene, presets=presets, config=config, mirrors=mirrors, peers=not args.no_peers,
-                                match=not args.no_match, peer_cache=args.peer_cache, peer_timeout=args.peer_timeout,
-                                progress=lambda m: print(m, flush=True))  # fmt: skip
-        except ValueError as exc:
-            raise CliError(f"{scene}: {exc}") from exc
-    files = write_outputs(rows, args.out)
-    print(files["markdown"].read_text(), end="")
-    print("wrote " + ", ".join(str(f) for f in files.values()))
+    try:
+        doc = run_bench(args.scenes, args.out, settings, say=lambda m: print(m, flush=True))
+    except ValueError as exc:  # PlyError and bad settings name the problem
+        raise CliError(str(exc)) from exc
+    from symgs_core.bench.rows import BenchRow
+
+    print(markdown([BenchRow.from_json(r) for r in doc["rows"]]), end="")
+    failing = doc["claims_failing_on_other_cameras"]
+    for claim in failing:
+        print(f"NOT CONFIRMED on other cameras: {claim['scene']}, smaller than {claim['peer']} "
+              f"({claim['equal_psnr_ratio']:.2f}x at {claim['peer_psnr_db']:.2f} dB)")  # fmt: skip
+    print(f"wrote {args.out / 'bench.json'}, {args.out / 'bench.md'}, charts in {args.out / 'charts'}; "
+          f"{len(doc['claims'])} claims, {len(failing)} not confirmed on other cameras")  # fmt: skip
     return 0

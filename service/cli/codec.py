@@ -13,6 +13,8 @@ from symgs_core.export.formats import extensions
 
 from .parser import CliError
 
+HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
+
 if TYPE_CHECKING:
     from symgs_core.config import CompressConfig
 
@@ -42,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_compress)
 
     d = sub.add_parser("decompress", help="decode a .symgs archive to a scene file (format by extension)")
-    d.add_argument("archive", type=Path)
+    d.add_argument("archive", type=Path, help=f"a .symgs archive (or a {HALF_PLY} float16 PLY of `symgs bench`)")
     d.add_argument("-o", "--output", type=Path, required=True, help=f"output scene, by extension: {extensions()}")
     d.add_argument("--spz-version", type=int, choices=[2, 3, 4], default=3, help=".spz version to write (default 3)")
     d.set_defaults(func=_decompress)
@@ -103,7 +105,7 @@ def _compress(args: argparse.Namespace) -> int:
 
 def _decompress(args: argparse.Namespace) -> int:
     # The codec alone, not the pipeline: decoding needs no renderer, and skipping its imports saves a quarter second.
-    from symgs_core.codec import ArchiveError, decode_archive, expand_archive
+    from symgs_core.codec import decode_archive, expand_archive
     from symgs_core.export.formats import by_path
 
     if not args.archive.is_file():
@@ -113,8 +115,13 @@ def _decompress(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     try:
-        scene = expand_archive(decode_archive(args.archive.read_bytes()))
-    except ArchiveError as exc:
+        if args.archive.name.lower().endswith(HALF_PLY):  # the benchmarks' float16 PLY peer
+            from symgs_core.bench.half_ply import read_half_ply
+
+            scene = read_half_ply(args.archive.read_bytes())
+        else:
+            scene = expand_archive(decode_archive(args.archive.read_bytes()))
+    except ValueError as exc:  # ArchiveError, HalfPlyError
         raise CliError(f"{args.archive}: {exc}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
     try:

@@ -5,6 +5,9 @@ stage the report accounts for (``Report.stages``: pruning, SH reduction, quantis
 on the fitting cameras the decisions saw and on the evaluation cameras that fitted nothing. PSNR is in dB against
 the report's reference (renders of the input, or photographs); ``None`` stands for an infinite PSNR (a result
 identical to its reference) and is drawn above the finite range.
+
+With ``peers`` (other formats run on the same upload and scored on the same evaluation cameras), both charts
+also show where each peer lands: its file's size and PSNR, and its encoding time.
 """
 
 from __future__ import annotations
@@ -15,12 +18,15 @@ from dataclasses import dataclass
 from typing import Literal
 
 from matplotlib.axes import Axes
-from matplotlib.ticker import EngFormatter
+from matplotlib.ticker import EngFormatter, LogLocator, NullFormatter
 from matplotlib.transforms import blended_transform_factory
 
 from ..report import Report
 from ._png import new_figure, png_bytes
-from .palette import NEUTRAL, level_colour
+from .axes import psnr_axis
+from .palette import NEUTRAL, level_colour, method_style
+
+YMap = Callable[[float | None], float]
 
 PointKind = Literal["input", "applied", "level", "rolled_back", "stage", "final", "evaluated"]
 # Stages whose point is drawn elsewhere: the mirror stage is the levels, entropy coding is the final archive.
@@ -46,6 +52,24 @@ class ChartPoint:
     seconds: float
     psnr: float | None
     estimated: bool = False
+
+
+@dataclass(frozen=True)
+class PeerPoint:
+    """Another format on the job's upload: its file's bytes, PSNR (dB, None when infinite) on the job's
+    evaluation cameras (the worst of full frame and object, as the job's own evaluated point) and encode seconds."""
+
+    method: str
+    bytes: int
+    psnr: float | None
+    seconds: float
+
+
+def _draw_peers(ax: Axes, peers: Sequence[PeerPoint], ymap: YMap, x: Callable[[PeerPoint], float]) -> None:
+    for p in peers:
+        colour, marker = method_style(p.method)
+        ax.plot([x(p)], [ymap(p.psnr)], linestyle="none", marker=marker, markersize=8, color=colour,
+                markeredgecolor="#222222", zorder=4, label=p.method)  # fmt: skip
 
 
 def _db(value: float | None) -> float | None:
@@ -109,25 +133,13 @@ def job_points(report: Report) -> list[ChartPoint]:
     return points
 
 
-def _psnr_axis(ax: Axes, points: Sequence[ChartPoint], floor: float | None) -> float:
-    """Set the y range over the finite PSNRs and the floor; returns the height where infinite ones are drawn,
-    above the finite range and marked with an infinity tick instead of a number."""
-    finite = [p.psnr for p in points if p.psnr is not None] + ([floor] if floor is not None else [])
-    lo, hi = (min(finite), max(finite)) if finite else (0.0, 1.0)
-    pad = max(0.1 * (hi - lo), 0.5)
-    if all(p.psnr is not None for p in points):
-        ax.set_ylim(lo - pad, hi + pad)
-        return hi
-    top = hi + 2 * pad
-    ax.set_ylim(lo - pad, top + pad)
-    ticks = [t for t in ax.get_yticks() if lo - pad <= t <= hi + pad]
-    ax.set_yticks([*ticks, top], [f"{t:g}" for t in ticks] + ["\u221e"])
-    ax.axhline(hi + pad, color="#999999", linewidth=0.8, linestyle=":")
-    return top
+def _psnr_axis(ax: Axes, points: Sequence[ChartPoint], floor: float | None, peers: Sequence[PeerPoint] = ()) -> YMap:
+    """The y range over the finite PSNRs and the floor (``axes.psnr_axis``); lossless points in a band above it."""
+    return psnr_axis(ax, [p.psnr for p in points] + [p.psnr for p in peers], floor)
 
 
-def _y(point: ChartPoint, top: float) -> float:
-    return top if point.psnr is None else point.psnr
+def _y(point: ChartPoint, ymap: YMap) -> float:
+    return ymap(point.psnr)
 
 
 _STAGE_MARKERS = "DPhp<>"
@@ -147,7 +159,7 @@ def _style(point: ChartPoint, rolled_back: set[int], stage_index: int) -> dict:
     return {"marker": "v" if point.kind == "applied" else "o", "color": level_colour(point.level or 0)}
 
 
-def _draw(ax: Axes, points: Sequence[ChartPoint], top: float, x: Callable[[ChartPoint], float], hollow: bool) -> None:
+def _draw(ax: Axes, points: Sequence[ChartPoint], top: YMap, x: Callable[[ChartPoint], float], hollow: bool) -> None:
     """The job's path (solid), a dashed grey branch to each rolled-back level, and a marker per point; hollow
     markers for estimated sizes when ``hollow``. Applied points carry no legend entry (the title explains them)."""
     grey = {p.level for p in points if p.kind == "rolled_back"}
@@ -180,18 +192,26 @@ def _finish(ax: Axes, report: Report, floor: float | None, title: str) -> None:
     ax.figure.legend(fontsize=8, loc="outside right upper")
 
 
-def rate_distortion_png(report: Report, width: int = 820, height: int = 420) -> bytes:
+def rate_distortion_png(
+    report: Report, width: int = 820, height: int = 420, peers: Sequence[PeerPoint] = ()
+) -> bytes:
     """PSNR against archive bytes along the job's path; hollow markers are sizes estimated from the Gaussians stored.
-    A vertical line marks the baseline (the codec alone on the input) when it is not the input point."""
+    A vertical line marks the baseline (the codec alone on the input) when it is not the input point. With
+    ``peers``, their files too, on a logarithmic size axis (they may be several times larger)."""
     points = [p for p in job_points(report) if p.bytes is not None]
     floor = _db(report.psnr_floor)
     fig = new_figure(width, height)
     ax = fig.add_subplot()
-    top = _psnr_axis(ax, points, floor)
+    top = _psnr_axis(ax, points, floor, peers)
     _draw(ax, points, top, lambda p: p.bytes, hollow=True)
+    if peers:
+        _draw_peers(ax, peers, top, lambda p: p.bytes)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
     if points[0].label != "baseline (plain codec)":
         ax.axvline(report.baseline_bytes, color="#222222", linestyle=":", label="baseline: the codec on the input")
     ax.xaxis.set_major_formatter(EngFormatter(unit="B"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("archive size (hollow markers: estimated from the Gaussians stored)")
     ax.margins(x=0.12)
     _finish(ax, report, floor, "Rate and distortion, level by level and stage by stage")
@@ -220,16 +240,19 @@ def _stage_bands(ax: Axes, report: Report) -> None:
         t += width
 
 
-def speed_accuracy_png(report: Report, width: int = 820, height: int = 420) -> bytes:
+def speed_accuracy_png(
+    report: Report, width: int = 820, height: int = 420, peers: Sequence[PeerPoint] = ()
+) -> bytes:
     """PSNR against the job's cumulative seconds, over shaded stage bands: each level's drop when its mirror is
-    applied and its recovery by fine-tuning, then each later stage."""
+    applied and its recovery by fine-tuning, then each later stage; with ``peers``, each at its encoding time."""
     points = job_points(report)
     floor = _db(report.psnr_floor)
     fig = new_figure(width, height)
     ax = fig.add_subplot()
-    top = _psnr_axis(ax, points, floor)
+    top = _psnr_axis(ax, points, floor, peers)
     _stage_bands(ax, report)
     _draw(ax, points, top, lambda p: p.seconds, hollow=False)
+    _draw_peers(ax, peers, top, lambda p: p.seconds)
     ax.set_xlabel("seconds since the job started")
     ax.set_xlim(left=0)
     _finish(ax, report, floor, "Speed and accuracy (\u25bc mirror applied, \u25cf fine-tuned)")

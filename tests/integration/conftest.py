@@ -37,6 +37,7 @@ def stack() -> Iterator[LocalStack]:
         # Short leases so a lost worker's job is taken over within seconds.
         "SYMGS_LEASE_SECONDS": "3",
         "SYMGS_MAINTENANCE_SECONDS": "1",
+        "SYMGS_PEER_SECONDS": "0",  # no peers in the charts where splat-transform is installed: seconds per job
         **LIMITS,
     }
     with LocalStack(env=env) as running:

@@ -1,0 +1,100 @@
+"""A bench over several scenes, written to one folder:
+
+    bench.json                     every row (``rows.BenchRow``), the claims and their check, settings and stamp
+    bench.md                       the tables (``tables.markdown``)
+    charts/rate_distortion.png     all scenes; charts/rate_distortion_<scene>.png per scene
+    charts/speed_accuracy.png      all scenes; charts/speed_accuracy_<scene>.png per scene
+    files/<scene>/...              every output, as the rows' ``file`` names it
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from ..views import DISTANCES
+from . import stamp
+from .rows import SCHEMA, TOLERANCE_DB, BenchRow, claims
+from .run import BenchSettings, bench_scene, scene_name
+
+
+def _names(scenes: list[Path]) -> list[str]:
+    """A distinct name per scene (a second scene of the same name gets a numbered suffix)."""
+    names: list[str] = []
+    for ply in scenes:
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "_", scene_name(ply))
+        names.append(name if name not in names else f"{name}-{sum(n.startswith(name) for n in names) + 1}")
+    return names
+
+
+def document(rows: list[BenchRow], scenes: list[Path], names: list[str], settings: BenchSettings,
+             info: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """The content of ``bench.json``."""
+    base = settings.config("balanced")
+    found = claims(rows)
+    return {
+        "schema": SCHEMA,
+        "generated": info,
+        "settings": {
+            "presets": list(settings.presets), "mirrors": list(settings.mirrors), "overrides": settings.overrides,
+            "curve": settings.curve_method, "sweep_runs": settings.sweep, "peer_timeout_s": settings.peer_timeout,
+            "slow_peer_timeout_s": settings.slow_timeout, "tolerance_db": TOLERANCE_DB,
+            "config": {k: v for k, v in asdict(base).items() if k not in ("preset", "psnr_budget", "use_mirrors")},
+        },
+        "cameras": {
+            "evaluation": {"seed": base.seed, "views": base.eval_views, "resolution": base.eval_resolution,
+                           "distances": list(DISTANCES),
+                           "note": "the runs' own evaluation cameras; they fit on other (fitting) cameras"},
+            "other": {"seed": settings.other_seed, "views": settings.other_views, "resolution": base.eval_resolution,
+                      "distances": list(DISTANCES), "note": "an independent rig: other directions"},
+        },  # fmt: skip
+        "scenes": [{"scene": name, "input": str(ply), "bytes": ply.stat().st_size} for ply, name in zip(scenes, names)],
+        "rows": [r.as_json() for r in rows],
+        "claims": found,
+        "claims_failing_on_other_cameras": [c for c in found if c["holds_on_other_cameras"] is False],
+    }
+
+
+def write_charts(rows: list[BenchRow], input_bytes: dict[str, int], folder: Path) -> list[Path]:
+    from ..pictures import bench_charts
+
+    folder.mkdir(parents=True, exist_ok=True)
+    made = {
+        "rate_distortion.png": bench_charts.rate_distortion_overall_png(rows, input_bytes),
+        "speed_accuracy.png": bench_charts.speed_accuracy_overall_png(rows),
+    }
+    for scene in input_bytes:
+        made[f"rate_distortion_{scene}.png"] = bench_charts.rate_distortion_png(rows, scene)
+        made[f"speed_accuracy_{scene}.png"] = bench_charts.speed_accuracy_png(rows, scene)
+    for name, png in made.items():
+        (folder / name).write_bytes(png)
+    return [folder / name for name in made]
+
+
+def run_bench(scenes: list[Path], out: Path, settings: BenchSettings,
+              say: Callable[[str], None] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Bench every scene into ``out``; returns the ``bench.json`` document (also written)."""
+    from .tables import markdown
+
+    out.mkdir(parents=True, exist_ok=True)
+    names = _names(scenes)
+    tool = None
+    if settings.splat_transform is not None:
+        from .splat_transform import version
+
+        tool = version(settings.splat_transform)
+    info = stamp.stamp(tool)
+    rows: list[BenchRow] = []
+    for ply, name in zip(scenes, names):
+        rows += bench_scene(ply, out, settings, say, name)
+    info["finished"] = stamp.stamp(tool)["date"]
+    info["load_at_end"] = stamp.machine()["load"]
+    doc = document(rows, scenes, names, settings, info)
+    (out / "bench.json").write_text(json.dumps(doc, indent=1))
+    (out / "bench.md").write_text(markdown(rows))
+    write_charts(rows, {name: ply.stat().st_size for ply, name in zip(scenes, names)}, out / "charts")
+    return doc
