@@ -44,6 +44,7 @@ RUNGS = range(-6, 11)  # a ladder's steps: 2^(k/2) times the preset's, 1/8 .. 32
 _EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette holds every row exactly
 _PALETTE = 1 << 14  # the k-means palette size otherwise
 _MU_STEPS = 48  # bisection steps on the price (log scale)
+RATE_SAMPLE = 1 << 16  # Gaussians whose encodes estimate a rung of a larger set (``Ladder``)
 
 
 def extent_of(stored: GaussianScene) -> float:
@@ -62,26 +63,50 @@ class Rung:
 
 
 class Ladder:
-    """The rungs of one section, finest first, built by ``make(k)`` and evaluated on first use.
+    """The rungs of one section, finest first, built by ``make(k, rows)`` (the codec of rung k for a set of ``rows``
+    Gaussians) and evaluated on first use.
 
     A codec's bytes are not convex along its ladder everywhere: where it changes layout (values on a grid of their
     own at some steps, positions too fine for the Morton range) a rung can cost more than the next. Cheap sections
     are searched over every rung (``exhaustive``); the higher SH, whose encodes cost the most, walks downhill from
     where it last stood, looking two rungs ahead before it stops.
+
+    With ``sample`` (indices of the set, in coding order) a rung's bytes and error are those of the sample's encode,
+    scaled by the ratio that the whole set's encode at the preset's own rung (k = 0) has to the sample's there: one
+    whole encode per section, whatever the number of rungs visited.
     """
 
-    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], SectionCodec], sens: Sensitivity,
-                 *, exhaustive: bool = True) -> None:  # fmt: skip
+    def __init__(self, section: str, values: np.ndarray, make: Callable[[int, int], SectionCodec], sens: Sensitivity,
+                 *, exhaustive: bool = True, sample: np.ndarray | None = None) -> None:  # fmt: skip
         self.section, self.values, self.make, self.sens = section, values, make, sens
         self.exhaustive = exhaustive
         self._rungs: dict[int, Rung] = {}
+        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)))
+        self._scale: tuple[float, float] | None = None  # (bits, error) of the whole set over the sample's
+
+    def _measure(self, codec: SectionCodec, values: np.ndarray, sens: Sensitivity) -> tuple[float, float]:
+        coded = codec.encode(values)
+        decoded = codec.decode(coded.payload, values.shape, coded.params, coded.raw_length)
+        return 8.0 * len(coded.payload), sens.error(self.section, values, decoded)
 
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
-            codec = self.make(k)
-            coded = codec.encode(self.values)
-            decoded = codec.decode(coded.payload, self.values.shape, coded.params, coded.raw_length)
-            self._rungs[k] = Rung(codec, 8.0 * len(coded.payload), self.sens.error(self.section, self.values, decoded))
+            codec = self.make(k, len(self.values))
+            if self._sample is None:
+                self._rungs[k] = Rung(codec, *self._measure(codec, self.values, self.sens))
+                return self._rungs[k]
+            values, sens = self._sample
+            if self._scale is None:
+                whole = self._measure(self.make(0, len(self.values)), self.values, self.sens)
+                part = self._measure(self.make(0, len(values)), values, sens)
+                # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at
+                # k = 0: then the errors scale as the sensitivity weights do.
+                weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()),
+                                                                            1e-300)  # fmt: skip
+                self._scale = (whole[0] / max(part[0], 1.0),
+                               whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight)  # fmt: skip
+            bits, error = self._measure(self.make(k, len(values)), values, sens)
+            self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
     def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
@@ -138,33 +163,42 @@ class RateDistortion:
         self.stored, self.sens = stored.select(order), sens.select(order)
         self.start = start
         arrays = {k: v.contiguous().numpy() for k, v in self.stored.tensors().items()}
+        n = len(self.stored)
+        # Every (n / RATE_SAMPLE)-th Gaussian along the coding order: spread over the whole scene like the set.
+        sample = np.linspace(0, n - 1, RATE_SAMPLE).round().astype(np.int64) if n > RATE_SAMPLE else None
         s, x = start, self.extent
-        step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
+        step = lambda base: (lambda k, rows=0: base * 2.0 ** (k / 2))  # noqa: E731
+        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, sample=sample, **kw)  # noqa: E731
         self.ladders: dict[str, list[Ladder]] = {
-            "means": [Ladder("means", arrays["means"], lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)),
-                             self.sens)],
-            "quats": [Ladder("quats", arrays["quats"], lambda k: RotationCodec(step(s.rotation)(k)), self.sens)],
-            "scales": [Ladder("scales", arrays["scales"], lambda k: ScalarGridCodec(step(s.scale)(k)), self.sens)],
-            "opacities": [Ladder("opacities", arrays["opacities"],
-                                 lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)), self.sens)],
-            "sh_dc": [Ladder("sh_dc", arrays["sh_dc"], lambda k: ShDcCodec(step(s.dc)(k)), self.sens)],
+            "means": [ladder("means", lambda k, rows: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
+            "quats": [ladder("quats", lambda k, rows: RotationCodec(step(s.rotation)(k)))],
+            "scales": [ladder("scales", lambda k, rows: ScalarGridCodec(step(s.scale)(k)))],
+            "opacities": [ladder("opacities", lambda k, rows: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
+            "sh_dc": [ladder("sh_dc", lambda k, rows: ShDcCodec(step(s.dc)(k)))],
         }  # fmt: skip
-        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"])  # fmt: skip
+        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample)
         self._at: dict[tuple[str, int], int] = {}
+        self._energy, self._cost_err, self._nonzero = self._truncation()
 
-    def _sh_ladders(self, sh_rest: np.ndarray) -> list[Ladder]:
+    def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None) -> list[Ladder]:
         """Per coefficient, and, with higher bands, as a palette (weighted by each row's sensitivity, so rows the
         renders hardly see take coarser entry steps)."""
         bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
-        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, exhaustive=False)]
+        ladders = [Ladder("sh_rest", sh_rest, lambda k, rows: ShRestCodec(bands(k)), self.sens, exhaustive=False,
+                          sample=sample)]  # fmt: skip
         if self.stored.sh_degree:
             size = palette_start(self.stored.sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
-            # A palette codes a vector per entry, not per Gaussian: its steps start finer by the square root of
-            # entries per Gaussian, for the same error per coded component.
-            finer = math.sqrt(min(1.0, size / max(len(sh_rest), 1)))
-            palette = lambda k: ShPaletteCodec(size, tuple(b * finer for b in bands(k)), weights)  # noqa: E731
-            ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
+
+            def palette(k: int, rows: int) -> ShPaletteCodec:
+                # A sample keeps the whole set's entries per row. A palette codes a vector per entry, not per
+                # Gaussian: its steps start finer by the square root of entries per Gaussian, for the same error per
+                # coded component.
+                entries = max(1, math.ceil(size * rows / max(len(sh_rest), 1)))
+                finer = math.sqrt(min(1.0, entries / max(rows, 1)))
+                return ShPaletteCodec(entries, tuple(b * finer for b in bands(k)), weights)
+
+            ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False, sample=sample))
         return ladders
 
     def best(self, section: str, mu: float) -> tuple[int, int, Rung]:
@@ -221,12 +255,6 @@ class RateDistortion:
     def _bits(self, section: str, mu: float) -> float:
         return self.best(section, mu)[2].bits
 
-    def _band_energy(self) -> Tensor:
-        """Sensitivity-weighted energy [N, degree] of each Gaussian's SH bands 1..degree."""
-        w = self.sens.weights["sh_rest"]
-        e = w * self.stored.sh_rest.to(torch.float64) ** 2
-        return torch.stack([e[:, s].sum(dim=(1, 2)) for s in band_slices(self.stored.sh_degree)], dim=1)
-
     def _sh_degrees(self, mu: float, codec: SectionCodec, bits_of: Callable[[str], float]) -> Tensor | None:
         """Each Gaussian's SH degree: the lowest whose dropped bands cost less error than their bits are worth.
         A palette keeps whole rows (a partly dropped row would be a new palette entry): its rows go to the zero
@@ -234,11 +262,7 @@ class RateDistortion:
         degree = self.stored.sh_degree
         if not degree:
             return None
-        energy = self._band_energy()  # [N, degree]
-        # Error of truncating to degree d: the energy of bands d+1..degree.
-        tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])
-        cost_err = torch.cat([tail, torch.zeros(len(energy), 1, dtype=tail.dtype)], dim=1)  # [N, degree + 1]
-        nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
+        energy, cost_err, nonzero = self._energy, self._cost_err, self._nonzero
         total_bits = bits_of("sh_rest")
         widths = torch.tensor([0] + [s.stop - s.start for s in band_slices(degree)], dtype=torch.float64)
         if isinstance(codec, ShPaletteCodec):
@@ -252,8 +276,20 @@ class RateDistortion:
         cost = kept_bits[None, :] + mu * cost_err
         return cost.argmin(dim=1)
 
+    def _truncation(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Band energies [N, degree]; the error [N, degree + 1] of truncating each Gaussian to degree d (the energy of
+        bands d+1..degree); which Gaussians hold any higher SH [N]."""
+        w = self.sens.weights["sh_rest"]
+        e = w * self.stored.sh_rest.to(torch.float64) ** 2
+        slices = band_slices(self.stored.sh_degree)
+        energy = torch.stack([e[:, s].sum(dim=(1, 2)) for s in slices], dim=1) if slices else e.new_zeros(len(e), 0)
+        tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])
+        cost_err = torch.cat([tail, torch.zeros(len(energy), 1, dtype=tail.dtype)], dim=1)
+        nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
+        return energy, cost_err, nonzero
+
     def _dropped_sh_error(self, degrees: Tensor) -> Tensor:
-        energy = self._band_energy()
+        energy = self._energy
         band = torch.arange(1, energy.shape[1] + 1)
         return (energy * (band[None, :] > degrees[:, None])).sum(dim=1)
 

@@ -135,20 +135,23 @@ def _spacing(means: torch.Tensor) -> float:
 def plan_attempts(
     state: LevelState, options: list[Membership], views: ViewSet, *, floor: float
 ) -> list[tuple[Membership, float]]:
-    """The memberships worth fine-tuning, loosest first, with their PSNR before the fine-tune.
+    """The memberships to consider, with their PSNR before the fine-tune (at most ``MAX_ATTEMPTS``): those worth a
+    fine-tune first, loosest first.
 
-    A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set) and start
-    within ``TUNE_GAIN`` dB of the floor (what a fine-tune typically recovers); at most ``MAX_ATTEMPTS`` are tried.
+    A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set). Those that
+    start more than ``TUNE_GAIN`` dB below the floor are listed but not fine-tuned (``hopeless``): a fine-tune of
+    the whole budget's worth of steps would not bring them back, and on a large scene it costs minutes.
     """
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
     scored = []
     for m in worth:
         candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
         scored.append((m, evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst))
-    hopeful = [(m, p) for m, p in scored if p >= floor - TUNE_GAIN]
-    if not hopeful and scored:  # none close enough: the strictest still gets its chance
-        hopeful = scored[-1:]
-    return hopeful[:MAX_ATTEMPTS]
+    return sorted(scored, key=lambda mp: hopeless(mp[1], floor))[:MAX_ATTEMPTS]  # stable: loosest first within each
+
+
+def hopeless(psnr_before: float, floor: float) -> bool:
+    return psnr_before < floor - TUNE_GAIN
 
 
 Judge = Callable[[LevelState, float], int]  # (state, its fitting PSNR) -> bytes of its archive at the floor
@@ -273,11 +276,17 @@ def run_levels(
         for membership, psnr_before in attempts:
             t0 = time.perf_counter()
             candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
-            tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
-                                          extent=extent, spacing=spacing, steps=steps, report=report)  # fmt: skip
+            if hopeless(psnr_before, floor):
+                tuned, psnr_after, run = candidate.detach(), psnr_before, 0
+            else:
+                tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
+                                              extent=extent, spacing=spacing, steps=steps, report=report)  # fmt: skip
             report.timed("optimize", time.perf_counter() - t0)
             archive_bytes = None
-            if psnr_after < floor:
+            if hopeless(psnr_before, floor):
+                accepted_now, reason = False, (f"not fine-tuned: it starts at {psnr_before:.2f} dB, more than "
+                                               f"{TUNE_GAIN:g} dB below the floor {floor:.2f} dB")  # fmt: skip
+            elif psnr_after < floor:
                 accepted_now, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
             else:
                 t1 = time.perf_counter()
