@@ -78,7 +78,7 @@ def _s3_errors(what: str) -> Iterator[None]:
         raise StorageError(f"object storage: {what}: {exc}") from exc
 
 
-def _missing(exc: Exception) -> bool:
+def _missing(exc: BaseException | None) -> bool:
     from botocore.exceptions import ClientError
 
     return isinstance(exc, ClientError) and exc.response.get("Error", {}).get("Code") in ("NoSuchKey", "404")

@@ -174,8 +174,8 @@ def _hash_fields(fields: dict[str, Any]) -> dict[str, str]:
 
 def _event(kind: str, state: str, h: dict[str, str], now: float) -> dict[str, str]:
     event = JobEvent(
-        kind=kind,  # type: ignore[arg-type]
-        state=state,  # type: ignore[arg-type]
+        kind=kind,
+        state=state,
         stage=h.get("stage") or None,
         level=int(h["level"]) if h.get("level") else None,
         progress=float(h.get("progress") or 0),
@@ -225,7 +225,7 @@ class JobStore:
         record = self.get(job_id)
         return record if record is not None and record.owner == owner else None
 
-    def list(self, owner: str, *, state: str | None, offset: int, limit: int) -> tuple[list[JobRecord], int]:
+    def list_owned(self, owner: str, *, state: str | None, offset: int, limit: int) -> tuple[list[JobRecord], int]:
         """A page of an owner's jobs, newest first, and the total count."""
         key = f"{P}owner:{owner}:state:{state}" if state else f"{P}owner:{owner}:jobs"
         with self.r.pipeline(transaction=False) as p:

@@ -19,7 +19,7 @@ import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, Literal
+from typing import IO, Literal
 
 from .errors import ApiError
 
@@ -201,7 +201,7 @@ class _Writer:
             raise _invalid("unsafe_entry", f"archive entry {entry.name[:80]!r} leaves the archive folder")
         return path
 
-    def write(self, entry: Entry, source: BinaryIO | None) -> None:
+    def write(self, entry: Entry, source: IO[bytes] | None) -> None:
         path = self.target(entry)
         if path is None:
             return

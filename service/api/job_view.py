@@ -29,18 +29,18 @@ def public_job(record: JobRecord) -> Job:
         error = JobError(code=record.error_code, message=record.error_message or "")
     return Job(
         id=record.id,
-        state=record.state,  # type: ignore[arg-type]
+        state=record.state,
         stage=record.stage,
         level=record.level,
         progress=record.progress,
         message=record.message,
         eta_s=record.eta_s,
         params=record.params,
-        queue=record.queue,  # type: ignore[arg-type]
-        scene=record.scene,  # type: ignore[arg-type]
-        images=record.images,  # type: ignore[arg-type]
-        mirrors=record.mirrors,  # type: ignore[arg-type]
-        metrics=record.metrics,  # type: ignore[arg-type]
+        queue=record.queue,
+        scene=record.scene,
+        images=record.images,
+        mirrors=record.mirrors,
+        metrics=record.metrics,
         artifacts=record.artifacts,
         error=error,
         attempts=record.attempts,

@@ -63,17 +63,18 @@ def run_detect(args: argparse.Namespace) -> int:
     for mirror in mirrors:
         for step, seconds in mirror.timings.items():
             steps[step] = steps.get(step, 0.0) + seconds
+    summaries = [m.summary() for m in mirrors]
     report = {
         "scene": str(args.scene),
         "gaussians": len(scene),
-        "mirrors": [m.summary() for m in mirrors],
+        "mirrors": summaries,
         "timings": {"load": load_s, "detect": detect_s, **steps},
     }
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
     print(f"{args.scene}: {len(scene):,} Gaussians, {len(mirrors)} mirror(s) in {detect_s:.2f} s (load {load_s:.2f} s)")
-    for m in report["mirrors"]:
+    for m in summaries:
         n = ", ".join(f"{v:+.4f}" for v in m["normal"])
         print(
             f"  level {m['level']}: normal ({n}) offset {m['offset']:+.5g}  votes {m['votes']}  "

@@ -72,8 +72,8 @@ class LocalProgress:
                                 left=format_seconds(left))  # fmt: skip
             elif not self.quiet:
                 last = self._line_at
-                changed = last is None or (event.stage, event.level) != last[:2]
-                if changed or now - last[2] >= self.line_every_s or event.fraction >= 1:
+                due = last is None or (event.stage, event.level) != last[:2] or now - last[2] >= self.line_every_s
+                if due or event.fraction >= 1:
                     self._line(event, now, left)
 
     def _tick(self) -> None:

@@ -134,7 +134,7 @@ def _triple(option: str, text: str, low: float, high: float, example: str) -> tu
         values = ()
     if len(values) != 3 or not all(low <= v <= high for v in values):
         raise CliError(f"{option} must be three numbers in [{low:g}, {high:g}] like {example}; got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def _size(width: int | None, height: int | None, native: tuple[int, int]) -> tuple[int, int]:
@@ -143,13 +143,13 @@ def _size(width: int | None, height: int | None, native: tuple[int, int]) -> tup
         if value is not None and not 1 <= value <= 16384:
             raise CliError(f"{name} must be in 1..16384, got {value}")
     w0, h0 = native
-    if width is None and height is None:
-        return w0, h0
-    if height is None:
-        return width, max(1, round(width * h0 / w0))  # type: ignore[operator]
-    if width is None:
+    if width is not None and height is not None:
+        return width, height
+    if width is not None:
+        return width, max(1, round(width * h0 / w0))
+    if height is not None:
         return max(1, round(height * w0 / h0)), height
-    return width, height
+    return w0, h0
 
 
 def _pick_camera(args: argparse.Namespace, scene: Any) -> tuple[Any, Any, str]:

@@ -102,13 +102,13 @@ def test_listing_pages_and_filters(store: JobStore) -> None:
         time.sleep(0.002)  # distinct creation times
     store.create(_job(9, owner="o2"))
     store.transition(_job(1).id, "running")
-    page, total = store.list("o1", state=None, offset=1, limit=2)
+    page, total = store.list_owned("o1", state=None, offset=1, limit=2)
     assert total == 5 and [r.id for r in page] == [_job(3).id, _job(2).id]
-    running, total = store.list("o1", state="running", offset=0, limit=10)
+    running, total = store.list_owned("o1", state="running", offset=0, limit=10)
     assert total == 1 and [r.id for r in running] == [_job(1).id]
-    assert store.list("o2", state=None, offset=0, limit=10)[1] == 1
+    assert store.list_owned("o2", state=None, offset=0, limit=10)[1] == 1
     store.delete(_job(1).id)
-    assert store.list("o1", state="running", offset=0, limit=10) == ([], 0)
+    assert store.list_owned("o1", state="running", offset=0, limit=10) == ([], 0)
 
 
 def test_idempotency_is_per_owner(store: JobStore) -> None:

@@ -104,7 +104,7 @@ def list_jobs(
     offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
 ) -> JobPage:
-    records, total = store.list(owner, state=state, offset=offset, limit=limit)
+    records, total = store.list_owned(owner, state=state, offset=offset, limit=limit)
     next_offset = offset + limit if offset + limit < total else None
     items = [public_job(r) for r in records]
     return JobPage(items=items, total=total, offset=offset, limit=limit, next_offset=next_offset)
