@@ -190,15 +190,13 @@ class RateDistortion:
             size = palette_start(self.stored.sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
 
-            def palette(k: int, rows: int) -> ShPaletteCodec:
-                # A sample keeps the whole set's entries per row. A palette codes a vector per entry, not per
-                # Gaussian: its steps start finer by the square root of entries per Gaussian, for the same error per
-                # coded component.
-                entries = max(1, math.ceil(size * rows / max(len(sh_rest), 1)))
-                finer = math.sqrt(min(1.0, entries / max(rows, 1)))
-                return ShPaletteCodec(entries, tuple(b * finer for b in bands(k)), weights)
-
-            ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False, sample=sample))
+            # A palette codes a vector per entry, not per Gaussian: its steps start finer by the square root of
+            # entries per Gaussian, for the same error per coded component.
+            finer = math.sqrt(min(1.0, size / max(len(sh_rest), 1)))
+            palette = lambda k, rows: ShPaletteCodec(size, tuple(b * finer for b in bands(k)), weights)  # noqa: E731
+            # No sample: a sample's palette would be fitted to fewer rows, and its error would be the clustering's,
+            # not the steps'.
+            ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
         return ladders
 
     def best(self, section: str, mu: float) -> tuple[int, int, Rung]:

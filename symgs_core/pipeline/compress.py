@@ -25,11 +25,12 @@ from .state import LevelState
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
 _STAGES = {
-    "load": (0.0, 0.03),
-    "views": (0.03, 0.12),
-    "levels": (0.12, 0.9),
-    "encode": (0.9, 0.95),
-    "evaluate": (0.95, 1.0),
+    "load": (0.0, 0.02),
+    "views": (0.02, 0.06),
+    "codec": (0.06, 0.45),
+    "levels": (0.45, 0.88),
+    "encode": (0.88, 0.93),
+    "evaluate": (0.93, 1.0),
 }
 
 
@@ -134,17 +135,18 @@ def compress(
     start = QuantSteps().scaled(PRESETS[config.preset].step_scale) if config.quantized else None
     fits: dict[int, Fitted] = {}
 
-    def fit(state: LevelState, psnr: float) -> Fitted:
+    def fit(state: LevelState, psnr: float, progress=None) -> Fitted:  # noqa: ANN001 - encode.FitProgress
         """The state's archive at the floor, remembered for the state the levels end on."""
         fits[id(state)] = fit_codec(state, views.fit, background, floor=floor, psnr_before=psnr, start=start,
-                                    meta=meta, name=config.preset, should_stop=report.should_stop)  # fmt: skip
+                                    meta=meta, name=config.preset, should_stop=report.should_stop,
+                                    progress=progress)  # fmt: skip
         return fits[id(state)]
 
     t0 = time.perf_counter()
-    report("encode", 0.0, "fitting the plain codec")
+    report("codec", 0.0, "fitting the plain codec")
     plain_state = LevelState.plain(source)
-    plain = fit(plain_state, reference)
-    report.timed("encode", time.perf_counter() - t0)
+    plain = fit(plain_state, reference, progress=lambda within, message: report("codec", within, message))
+    report.timed("codec", time.perf_counter() - t0)
     max_levels = config.max_levels if config.use_mirrors else 0
     t0 = time.perf_counter()
     state, psnr, records = run_levels(

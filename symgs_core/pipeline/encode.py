@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -34,6 +34,7 @@ _LOSSLESS = CodecReport("lossless", None, None, 0)
 MAX_CHECKS = 4  # renders of a decoded archive per fit
 PRUNE_SHARES = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4)  # shares of the stored set pruning tries, rendered
 _AIM = 0.9  # of the allowed error the first choice aims at: the model errs by tens of percent either way
+FitProgress = Callable[[float, str], None]  # (share of the fit done, what it is doing)
 _CLOSE = 0.8  # a passing archive that measures at least this share of the allowed error is kept without retrying
 
 
@@ -118,6 +119,7 @@ def fit_codec(
     meta: dict,
     name: str,
     should_stop=None,  # noqa: ANN001 - Callable[[], bool], checked between renders
+    progress: FitProgress | None = None,
 ) -> Fitted:
     """The smallest archive of ``state`` whose decode keeps ``floor`` on ``fit``; ``psnr_before`` is ``state``'s
     own. ``start`` None, or no room under the floor: float32 (lossless)."""
@@ -125,15 +127,21 @@ def fit_codec(
     allowed = psnr_to_mse(floor) - psnr_to_mse(psnr_before)
     if start is None or not math.isfinite(floor) or allowed <= 0:
         return Fitted(state, write_archive(state, meta), psnr_before, _LOSSLESS, seconds=time.perf_counter() - t0)
+    tell = progress or (lambda within, message: None)
     state = canonical(state)
-    rd = RateDistortion(state.stored, sensitivity(state, fit, background), start)
+    tell(0.0, "measuring how the renders respond to each attribute")
+    sens = sensitivity(state, fit, background)
+    tell(0.3, "rate of each quantiser")
+    rd = RateDistortion(state.stored, sens, start)
+    tell(0.45, "how many Gaussians the renders miss least")
     keep, pruned = prune(state, rd, fit, background, allowed=allowed, psnr_before=psnr_before,
                          should_stop=should_stop)  # fmt: skip
     best: Fitted | None = None
     target, tries = _AIM * allowed - pruned, []
-    for _ in range(MAX_CHECKS):
+    for check in range(MAX_CHECKS):
         if should_stop is not None and should_stop():
             break
+        tell(0.65 + 0.35 * check / MAX_CHECKS, f"encoding and checking against renders ({check + 1})")
         choice = rd.choose(target, keep=keep)
         if choice.error > target:
             break  # nothing quantised fits: float32 below
