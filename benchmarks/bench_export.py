@@ -21,6 +21,7 @@ read-back export (PSNR against the decode; the lowest names the attribute that c
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -28,7 +29,6 @@ from pathlib import Path
 
 import torch
 
-from symgs_core.bench import find_splat_transform
 from symgs_core.export import compressed_ply_order, write_compressed_ply, write_spz
 from symgs_core.pipeline import decompress
 from symgs_core.ply import load_scene, save_scene
@@ -109,9 +109,11 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--resolution", type=int, default=256)
     args = parser.parse_args()
-    exe = find_splat_transform()
-    if exe is None:
-        raise SystemExit("splat-transform not found: set SPLAT_TRANSFORM or SYMGS_NPM_CACHE")
+    # The 2.x reader: it reads .spz in the axes our writer and Niantic's reference use (3.x reads them as PLY axes).
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tests.npm_tools import SPLAT_TRANSFORM_SPZ, splat_transform
+
+    exe = os.environ.get("SPLAT_TRANSFORM") or splat_transform(SPLAT_TRANSFORM_SPZ)
     print("| scene | export | bytes | PSNR vs decode (dB) | one attribute from the export (dB) |")
     print("|---|---|---:|---:|---|")
     for scene in args.scenes:

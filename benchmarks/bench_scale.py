@@ -87,13 +87,12 @@ def run_child(cmd: list[str], *, limit_s: float, log: Path, env: dict[str, str] 
 
 
 def splat_transform() -> str:
-    from symgs_core.bench import find_splat_transform
+    from symgs_core.bench import splat_transform as tool
 
-    exe = find_splat_transform()
-    if exe is None:
-        sys.exit("splat-transform not found: set SPLAT_TRANSFORM or install @playcanvas/splat-transform into "
-                 "~/.cache/symgs/npm (the test suite does it)")  # fmt: skip
-    return exe
+    try:
+        return tool.find() or tool.install()
+    except tool.ToolError as exc:
+        sys.exit(f"splat-transform: {exc}")
 
 
 def setup(work: Path, labels: list[str], sog: Path) -> tuple[str, dict[str, Path]]:
