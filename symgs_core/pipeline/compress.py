@@ -164,7 +164,7 @@ def compress(
     archive = fitted.archive
     baseline = fitted_baseline(plain_state, fitted, meta)
     stage_reports = stages(plain_state, state, fitted, reference=reference, mirrored_psnr=psnr, meta=meta,
-                           seconds=report.seconds)  # fmt: skip
+                           seconds=report.seconds, baseline=baseline)  # fmt: skip
     report.timed("encode", time.perf_counter() - t0)
 
     t0 = time.perf_counter()

@@ -186,11 +186,13 @@ def fitted_baseline(plain: LevelState, fitted: Fitted, meta: dict) -> bytes:
 
 def stages(
     source: LevelState, mirrored: LevelState, fitted: Fitted, *, reference: float, mirrored_psnr: float, meta: dict,
-    seconds: dict[str, float],
+    seconds: dict[str, float], baseline: bytes,
 ) -> list[StageReport]:
     """Where the size went, each stage measured on archives: the mirrors on float32 archives, then quantisation,
     pruning and SH reduction with the final codec. The codec chose all three at one price; the PSNR after the
-    middle two is the model's prediction (``predicted``), the first and last are rendered."""
+    middle two is the model's prediction (``predicted``), the first and last are rendered. ``baseline``: the plain
+    state written by the final codec (``fitted_baseline``), which is the quantisation stage's archive when no mirror
+    was kept."""
     lossless_in = len(write_archive(source, meta))
     lossless_mirrored = len(write_archive(mirrored, meta)) if mirrored.normals.shape[0] else lossless_in
     out = [_stage("mirrors", lossless_in, lossless_mirrored, reference, mirrored_psnr, seconds.get("levels", 0.0))]
@@ -205,7 +207,7 @@ def stages(
     unreduced = fitted.unreduced
     pruned = LevelState(unreduced.stored.select(fitted.kept), unreduced.normals, unreduced.offsets,
                         unreduced.bits[fitted.kept.to(unreduced.bits.device)])  # fmt: skip
-    quantised = len(write_archive(unreduced, meta, fitted.writer))
+    quantised = len(baseline) if not mirrored.normals.shape[0] else len(write_archive(unreduced, meta, fitted.writer))
     pruned_bytes = len(write_archive(pruned, meta, fitted.writer)) if fitted.removed else quantised
     out.append(_stage("quantization", lossless_mirrored, quantised, mirrored_psnr, predicted("codec"),
                       fitted.seconds, predicted=True))  # fmt: skip
