@@ -155,6 +155,8 @@ def compress(
         fingerprint=_fingerprint(source, config, images),
     )  # fmt: skip
     report.timed("levels", time.perf_counter() - t0)
+    if not state.normals.shape[0]:  # no level kept: the result is the plain codec's archive, already fitted
+        state = plain_state
 
     t0 = time.perf_counter()
     report("encode", 0.5, "encoding archive")
