@@ -107,6 +107,8 @@ def compress(
     t0 = time.perf_counter()
     report("load", 0.0, "loading scene")
     source, input_bytes, name = _load(scene)
+    if not len(source):
+        raise ValueError(f"{name}: the scene has no Gaussians, there is nothing to compress")
     source = source.to(device)
     report.timed("load", time.perf_counter() - t0)
 
