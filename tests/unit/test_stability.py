@@ -169,12 +169,16 @@ def test_a_plane_that_drifts_during_the_fine_tune(monkeypatch):
     turn = math.radians(1.0)
     tilted = Plane((math.cos(turn), math.sin(turn), 0.0), 0.0)
 
+    calls = []
+
     def off_by_a_degree(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(1)
         return [replace(m, plane=tilted) for m in detect(*args, **kwargs)]
 
     monkeypatch.setattr(package, "detect", off_by_a_degree)
     # Balanced's 0.3 dB would refuse even the tuned level; with 1 dB it is kept, so the archive holds the moved plane.
     report = _compress_and_check(planted.scene, replace(CONFIG, iterations=20, max_levels=1, psnr_budget=1.0)).report
+    assert calls  # the level loop asked the tilted detector
     level = report.levels[0]
     assert level.accepted and level.psnr_after > level.psnr_before
     assert _angle(level.normal, tilted.normal) > 0.1  # it moved
