@@ -265,6 +265,8 @@ class Matcher:
     def _icp_step(self, idx: np.ndarray, n: np.ndarray, g: float, tau: np.ndarray) -> tuple[np.ndarray, float]:
         """One refinement step on Gaussians ``idx`` with tolerances ``tau``; the plane unchanged when fewer than 8
         pairs are found."""
+        if idx.size < 8:  # too few Gaussians match the current plane to pair, let alone fit one
+            return n, g
         a = self.p[idx]
         d = _distances(a, n, g)
         err, hit = _query(self.tree, a - 2.0 * d[:, None] * n, k=1, distance_upper_bound=2.0 * float(tau.max()))

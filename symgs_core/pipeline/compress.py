@@ -108,6 +108,8 @@ def compress(
     t0 = time.perf_counter()
     report("load", 0.0, "loading scene")
     source, input_bytes, name = _load(scene)
+    if not len(source):
+        raise ValueError(f"{name}: the scene has no Gaussians, there is nothing to compress")
     source = source.to(device)
     report.timed("load", time.perf_counter() - t0)
 
@@ -157,6 +159,8 @@ def compress(
         fingerprint=_fingerprint(source, config, images),
     )  # fmt: skip
     report.timed("levels", time.perf_counter() - t0)
+    if not state.normals.shape[0]:  # no level kept: the result is the plain codec's archive, already fitted
+        state = plain_state
 
     t0 = time.perf_counter()
     report("encode", 0.5, "encoding archive")
