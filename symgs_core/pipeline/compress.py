@@ -81,7 +81,13 @@ def _fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Pat
     for t in scene.tensors().values():
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
     h.update(json.dumps(asdict(config), sort_keys=True, default=str).encode())
-    h.update(str(images).encode())
+    if images is not None:  # the dataset's contents, not where it lies: a job resumed on another host matches
+        root = Path(images)
+        for file in sorted(p for p in (root.rglob("*") if root.is_dir() else [root]) if p.is_file()):
+            h.update(str(file.relative_to(root) if root.is_dir() else file.name).encode())
+            with file.open("rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
     return h.hexdigest()
 
 

@@ -207,3 +207,17 @@ def test_a_job_changes_no_process_wide_state(symmetric):
     for budget in (3.0, 1.0):
         compress(symmetric.scene, config=replace(FAST, preset="small", psnr_budget=budget, max_levels=0))
     assert (dict(registry._SECTION_CODECS), dict(registry._ARCHIVE_CODECS)) == before
+
+
+def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None:  # noqa: ANN001
+    from symgs_core.pipeline.compress import _fingerprint
+
+    scene, config = synthetic_scene("global", n=64, seed=1).scene, CompressConfig.for_preset()
+    here, there = tmp_path / "host_a" / "data", tmp_path / "host_b" / "elsewhere"
+    for root in (here, there):
+        (root / "images").mkdir(parents=True)
+        (root / "images" / "r_0.png").write_bytes(b"\x89PNG pixels")
+        (root / "transforms_train.json").write_text('{"frames": []}')
+    assert _fingerprint(scene, config, here) == _fingerprint(scene, config, there)
+    (there / "images" / "r_0.png").write_bytes(b"\x89PNG other pixels")
+    assert _fingerprint(scene, config, here) != _fingerprint(scene, config, there)
