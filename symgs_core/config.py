@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal, get_args
 
-Preset = Literal["small", "balanced", "high", "lossless"]
+Preset = Literal["fast", "small", "balanced", "high", "lossless"]
 DeviceChoice = Literal["auto", "cpu", "cuda"]
 PRESET_NAMES: tuple[str, ...] = get_args(Preset)
 DEFAULT_PRESET: Preset = "balanced"
@@ -20,23 +20,33 @@ DEFAULT_PRESET: Preset = "balanced"
 @dataclass(frozen=True)
 class PresetSpec:
     """What a preset promises and how it starts: ``budget`` dB of PSNR (see ``CompressConfig``), the starting
-    quantisation steps as a multiple of ``codec.QuantSteps()`` (``step_scale``; 0: float32, nothing quantised)."""
+    quantisation steps as a multiple of ``codec.QuantSteps()`` (``step_scale``; 0: float32, nothing quantised).
+
+    ``fitted`` False: one encode at the starting steps, no mirrors, no renders deciding anything; the budget's floor
+    is what the report compares the result with, not a promise. ``settings``: the preset's own defaults of other
+    ``CompressConfig`` fields (a caller's values still win).
+    """
 
     name: Preset
     budget: float
     step_scale: float
     summary: str
+    fitted: bool = True
+    settings: tuple[tuple[str, Any], ...] = ()
 
 
 PRESETS: dict[str, PresetSpec] = {
     spec.name: spec
     for spec in (
+        PresetSpec("fast", 0.3, 0.5, "seconds for a million Gaussians: one encode at fixed steps, no mirrors, no "
+                   "fitting; fidelity is reported, not held to a floor", fitted=False,
+                   settings=(("max_levels", 0), ("fit_views", 2), ("eval_views", 4))),
         PresetSpec("small", 1.0, 2.0, "smallest archives; up to 1 dB of PSNR below the input on a 30 dB scene"),
         PresetSpec("balanced", 0.3, 1.0, "the default; up to 0.3 dB of PSNR below the input on a 30 dB scene"),
         PresetSpec("high", 0.1, 0.5, "near-transparent; up to 0.1 dB of PSNR below the input on a 30 dB scene"),
         PresetSpec("lossless", 0.0, 0.0, "float32 attributes, bit-exact; only mirrors may cost fidelity"),
     )
-}
+}  # fmt: skip
 
 
 def floor_for_budget(budget: float, nominal: float) -> float:
@@ -117,8 +127,10 @@ class CompressConfig:
         unknown = sorted(set(overrides) - known)
         if unknown:
             raise ValueError(f"unknown settings {', '.join(unknown)}")
+        name = preset or DEFAULT_PRESET
         given = {k: v for k, v in overrides.items() if v is not None}
-        return cls(preset=preset or DEFAULT_PRESET, **given)  # type: ignore[arg-type]
+        own = dict(PRESETS[name].settings) if name in PRESETS else {}
+        return cls(preset=name, **{**own, **given})  # type: ignore[arg-type]
 
     @property
     def budget(self) -> float:

@@ -145,7 +145,7 @@ def curve_points(rows: list[BenchRow], scene: str, method: str = OURS, field: st
 
 
 def _nearest_preset(floor: float, nominal: float) -> str:
-    lossy = [name for name, spec in PRESETS.items() if spec.step_scale > 0]
+    lossy = [name for name, spec in PRESETS.items() if spec.step_scale > 0 and spec.fitted]  # a budget it can hold
     return min(lossy, key=lambda name: abs(floor_for_budget(PRESETS[name].budget, nominal) - floor))
 
 

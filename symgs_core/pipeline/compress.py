@@ -19,7 +19,7 @@ from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
 from ..views import dataset_views, evaluate, self_supervised_views
-from .encode import Fitted, fit_codec, fitted_baseline, stages
+from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, stages
 from .levels import run_levels
 from .state import LevelState
 
@@ -145,6 +145,9 @@ def compress(
 
     def fit(state: LevelState, psnr: float, progress=None) -> Fitted:  # noqa: ANN001 - encode.FitProgress
         """The state's archive at the floor, remembered for the state the levels end on."""
+        if start is not None and not PRESETS[config.preset].fitted:
+            fits[id(state)] = fixed_codec(state, views.fit, background, steps=start, meta=meta, name=config.preset)
+            return fits[id(state)]
         fits[id(state)] = fit_codec(state, views.fit, background, floor=floor, psnr_before=psnr, start=start,
                                     meta=meta, name=config.preset, should_stop=report.should_stop,
                                     progress=progress)  # fmt: skip
@@ -155,7 +158,8 @@ def compress(
     plain_state = LevelState.plain(source)
     plain = fit(plain_state, reference, progress=lambda within, message: report("codec", within, message))
     report.timed("codec", time.perf_counter() - t0)
-    max_levels = config.max_levels if config.use_mirrors else 0
+    # Levels are judged by fitted archives: a preset that fits nothing keeps none.
+    max_levels = config.max_levels if config.use_mirrors and PRESETS[config.preset].fitted else 0
     t0 = time.perf_counter()
     state, psnr, records = run_levels(
         source, views, config=replace(config, max_levels=max_levels), floor=floor, reference=reference,

@@ -26,7 +26,7 @@ from ..metrics import mse_to_psnr, psnr_to_mse
 from ..mirror import Plane
 from ..report import CodecReport, StageReport
 from ..views import View, evaluate
-from .budget import Choice, RateDistortion
+from .budget import Choice, RateDistortion, extent_of
 from .sensitivity import sensitivity
 from .state import LevelState
 
@@ -175,6 +175,21 @@ def fit_codec(
     best.tries, best.seconds = tries, time.perf_counter() - t0
     best.codec = CodecReport(best.codec.name, best.codec.steps, best.codec.floor, len(tries))
     return best
+
+
+def fixed_codec(
+    state: LevelState, fit: Sequence[View], background: Tensor, *, steps: QuantSteps, meta: dict, name: str
+) -> Fitted:
+    """``state`` written at ``steps`` as they are: one encode, nothing searched or reduced (a preset that is not
+    ``fitted``); the decode's PSNR on ``fit`` is measured for the report, not held to a floor."""
+    t0 = time.perf_counter()
+    state = canonical(state)
+    writer = steps.archive_codec(extent_of(state.stored), name)
+    archive = write_archive(state, meta, writer)
+    decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
+    psnr = evaluate(decoded, fit, background, with_ssim=False).worst
+    return Fitted(state, archive, psnr, CodecReport(name, steps.report(), None, 0), steps, writer,
+                  seconds=time.perf_counter() - t0)  # fmt: skip
 
 
 def fitted_baseline(plain: LevelState, fitted: Fitted, meta: dict) -> bytes:

@@ -221,3 +221,17 @@ def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None
     assert _fingerprint(scene, config, here) == _fingerprint(scene, config, there)
     (there / "images" / "r_0.png").write_bytes(b"\x89PNG other pixels")
     assert _fingerprint(scene, config, here) != _fingerprint(scene, config, there)
+
+
+def test_the_fast_preset_encodes_once_at_fixed_steps_and_reports_what_it_measured() -> None:
+    scene = synthetic_scene("global", n=600, seed=3, sh_degree=1).scene
+    config = CompressConfig.for_preset("fast", resolution=32, eval_resolution=32, pictures=False, device="cpu")
+    assert (config.max_levels, config.fit_views, config.eval_views) == (0, 2, 4)  # the preset's own defaults
+    assert CompressConfig.for_preset("fast", eval_views=3).eval_views == 3  # a caller's value wins
+    result = compress(scene, config=config)
+    report = result.report
+    assert report.levels == () and [s.stage for s in report.stages] == ["mirrors", "entropy_coding"]
+    assert report.codec.floor is None and report.codec.steps is not None and report.codec.tries == 0
+    decoded = decompress(result.archive)
+    assert len(decoded) == len(scene) == report.gaussians.decoded  # nothing pruned
+    assert math.isfinite(report.fidelity.psnr) and report.stages[-1].psnr_after == pytest.approx(report.fitting.worst)
