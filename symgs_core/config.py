@@ -38,7 +38,7 @@ class PresetSpec:
 PRESETS: dict[str, PresetSpec] = {
     spec.name: spec
     for spec in (
-        PresetSpec("fast", 0.3, 0.5, "seconds for a million Gaussians: one encode at fixed steps, no mirrors, no "
+        PresetSpec("fast", 0.3, 1.0, "seconds for a million Gaussians: one encode at fixed steps, no mirrors, no "
                    "fitting; fidelity is reported, not held to a floor", fitted=False,
                    settings=(("max_levels", 0), ("fit_views", 2), ("eval_views", 4))),
         PresetSpec("small", 1.0, 2.0, "smallest archives; up to 1 dB of PSNR below the input on a 30 dB scene"),
