@@ -202,7 +202,10 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
         print(f"[{label}] splat-transform .spz v{version}: {peer.seconds:.1f} s", flush=True)
 
     if not args.no_fidelity and "stages" in row:
-        for key, candidate in (("psnr_symgs", archive), ("psnr_spz_v4", out / "peer_v4.spz")):
+        # The .spz as splat-transform itself reads it back (its 3.x releases keep .spz in the PLY's axes).
+        read_back = out / "peer_v4.ply"
+        subprocess.run([exe, "-w", "-q", str(out / "peer_v4.spz"), str(read_back)], capture_output=True, check=False)
+        for key, candidate in (("psnr_symgs", archive), ("psnr_spz_v4", read_back)):
             done = subprocess.run([*symgs, "evaluate", str(ply), str(candidate), "--json"], capture_output=True,
                                   text=True, env=env)  # fmt: skip
             row[key] = json.loads(done.stdout)["psnr"] if done.returncode == 0 else None
