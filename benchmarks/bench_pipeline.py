@@ -25,10 +25,16 @@ def _db(value: float) -> str:
     return "lossless" if math.isinf(value) else f"{value:.2f}"
 
 
+def _outcome(level) -> str:  # noqa: ANN001 - symgs_core.report.LevelReport
+    if level.accepted:
+        return ""
+    return " (not fine-tuned)" if level.iterations == 0 and level.psnr_after == level.psnr_before else " (rolled back)"
+
+
 def _row(name: str, on, off, wall_on: float, wall_off: float) -> str:  # noqa: ANN001 - symgs_core.report.Report
     levels = on.accepted_levels
     tried = " / ".join(
-        f"{lv.psnr_before:.1f}->{lv.psnr_after:.1f}{'' if lv.accepted else ' (rolled back)'}" for lv in on.levels
+        f"{lv.psnr_before:.1f}->{lv.psnr_after:.1f}{_outcome(lv)}" for lv in on.levels
     )
     return (
         f"| {name} | {len(levels)} | {on.gaussians.input} | {on.gaussians.stored} | {off.output_bytes:,} | "
