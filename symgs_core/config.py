@@ -24,8 +24,8 @@ class PresetSpec:
 
     ``fitted`` False: one encode at the starting steps, no mirrors, no renders deciding anything; the budget's floor
     is what the report compares the result with, not a promise. Preset ``fast`` starts at twice the preset steps,
-    where ``balanced``'s fitted codecs land for most attributes on real captures (BENCHMARKS, "Scale"). ``settings``: the preset's own defaults of other
-    ``CompressConfig`` fields (a caller's values still win).
+    where ``balanced``'s fitted codecs land for most attributes on real captures (BENCHMARKS, "Scale").
+    ``settings``: the preset's own defaults of other ``CompressConfig`` fields (a caller's values still win).
     """
 
     name: Preset
