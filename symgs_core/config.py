@@ -78,6 +78,8 @@ class CompressConfig:
     train_views / fit_views / eval_views  camera counts of the three disjoint sets (``views``): the fine-tune trains
                   on the first, every decision is taken on the second, and only the third is reported. With
                   photographs, the dataset's test split is the evaluation set (at most ``eval_views`` of it).
+                  Per-Gaussian decisions (pruning, SH bands) see only what the fitting cameras see: 16 of them cover
+                  a capture where 8 left parts unseen that other cameras see (BENCHMARKS, "Pipeline").
     resolution    longest side, in pixels, of the training views; the fitting and evaluation views are rendered at
                   ``eval_resolution``.
     pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
@@ -89,7 +91,7 @@ class CompressConfig:
     max_levels: int = 4
     iterations: int = 200
     train_views: int = 128
-    fit_views: int = 8
+    fit_views: int = 16
     eval_views: int = 8
     resolution: int = 192
     eval_resolution: int = 256
