@@ -24,12 +24,18 @@ def _git(*args: str) -> str | None:
     return done.stdout.strip() if done.returncode == 0 else None
 
 
+# What ``make bench`` itself writes while it runs: a change there is not a change of the code measured.
+_OUTPUTS = ("BENCHMARKS.md", "benchmarks/times.json", "benchmarks/codec/", "benchmarks/scale/")
+
+
 def commit() -> str:
-    """The checked-out commit (short hash), with ``+changes`` when tracked files differ from it."""
+    """The checked-out commit (short hash), with ``+changes`` when tracked files other than the benchmarks' own
+    outputs differ from it."""
     head = _git("rev-parse", "--short=12", "HEAD")
     if head is None:
         return "unknown"
-    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    status = _git("status", "--porcelain", "--untracked-files=no") or ""
+    dirty = [line[3:] for line in status.splitlines() if not line[3:].startswith(_OUTPUTS)]
     return head + ("+changes" if dirty else "")
 
 
