@@ -36,8 +36,7 @@ from symgs_core.scene import GaussianScene
 from symgs_core.views import evaluate, self_supervised_views
 
 SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
-COMPRESS = ["--preset", "balanced", "--resolution", "256", "--train-views", "16", "--eval-views", "8",
-            "--iterations", "30", "--max-levels", "2", "--quiet"]  # fmt: skip
+COMPRESS = ["--quiet"]  # the default a user gets
 ATTRIBUTES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest")
 
 
@@ -66,10 +65,11 @@ def swapped(reference: GaussianScene, back: GaussianScene, name: str) -> Gaussia
 def bench(scene: Path, archives: Path, exe: str, views: int, resolution: int) -> list[str]:
     archive = archive_of(scene, archives)
     decode = decompress(archive)
-    cameras = self_supervised_views(decode, 1, views, resolution, torch.zeros(3))
+    cameras = self_supervised_views(decode, train=1, fit=1, eval=views, resolution=resolution,
+                                    eval_resolution=resolution, background=torch.zeros(3))  # fmt: skip
 
     def psnr(candidate: GaussianScene) -> float:
-        return evaluate(candidate, cameras.test, cameras.background)[0]
+        return evaluate(candidate, cameras.eval, cameras.background, with_ssim=False).psnr
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
