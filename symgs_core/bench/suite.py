@@ -52,7 +52,8 @@ def document(rows: list[BenchRow], scenes: list[Path], names: list[str], setting
             "other": {"seed": settings.other_seed, "views": settings.other_views, "resolution": base.eval_resolution,
                       "distances": list(DISTANCES), "note": "an independent rig: other directions"},
         },  # fmt: skip
-        "scenes": [{"scene": name, "input": str(ply), "bytes": ply.stat().st_size} for ply, name in zip(scenes, names)],
+        # The file's name, not where it lay: bench.json travels between machines.
+        "scenes": [{"scene": name, "input": ply.name, "bytes": ply.stat().st_size} for ply, name in zip(scenes, names)],
         "rows": [r.as_json() for r in rows],
         "claims": found,
         "claims_failing_on_other_cameras": [c for c in found if c["holds_on_other_cameras"] is False],

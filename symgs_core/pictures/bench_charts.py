@@ -117,8 +117,9 @@ def _overall(rows: Sequence[BenchRow], x: Callable[[BenchRow], float], xlabel: s
             mine = sorted((r for r in shown if r.method == method and r.scene == scene), key=x)
             if not mine:
                 continue
-            if len(mine) > 1:
-                ax.plot([x(r) for r in mine], [ymap(r.psnr_db) for r in mine], color=colour, linewidth=0.6, alpha=0.6)
+            if len(mine) > 1:  # the front: a run that another beats in both bytes and PSNR is a marker only
+                front = curve.front((x(r), r.psnr_db) for r in mine)  # type: ignore[misc]
+                ax.plot([b for b, _ in front], [ymap(p) for _, p in front], color=colour, linewidth=0.6, alpha=0.6)
             ax.plot([x(r) for r in mine], [ymap(r.psnr_db) for r in mine], linestyle="none", color=colour,
                     marker=SCENE_MARKERS[i % len(SCENE_MARKERS)], markersize=6, markeredgecolor="#222222",
                     label=method if i == 0 else None)  # fmt: skip
