@@ -63,8 +63,7 @@ class Rung:
 
 
 class Ladder:
-    """The rungs of one section, finest first, built by ``make(k, rows)`` (the codec of rung k for a set of ``rows``
-    Gaussians) and evaluated on first use.
+    """The rungs of one section, finest first, built by ``make(k)`` and evaluated on first use.
 
     A codec's bytes are not convex along its ladder everywhere: where it changes layout (values on a grid of their
     own at some steps, positions too fine for the Morton range) a rung can cost more than the next. Cheap sections
@@ -76,7 +75,7 @@ class Ladder:
     whole encode per section, whatever the number of rungs visited.
     """
 
-    def __init__(self, section: str, values: np.ndarray, make: Callable[[int, int], SectionCodec], sens: Sensitivity,
+    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], SectionCodec], sens: Sensitivity,
                  *, exhaustive: bool = True, sample: np.ndarray | None = None) -> None:  # fmt: skip
         self.section, self.values, self.make, self.sens = section, values, make, sens
         self.exhaustive = exhaustive
@@ -91,21 +90,22 @@ class Ladder:
 
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
-            codec = self.make(k, len(self.values))
+            codec = self.make(k)
             if self._sample is None:
                 self._rungs[k] = Rung(codec, *self._measure(codec, self.values, self.sens))
                 return self._rungs[k]
             values, sens = self._sample
             if self._scale is None:
-                whole = self._measure(self.make(0, len(self.values)), self.values, self.sens)
-                part = self._measure(self.make(0, len(values)), values, sens)
+                preset = self.make(0)
+                whole = self._measure(preset, self.values, self.sens)
+                part = self._measure(preset, values, sens)
                 # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at
                 # k = 0: then the errors scale as the sensitivity weights do.
                 weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()),
                                                                             1e-300)  # fmt: skip
                 self._scale = (whole[0] / max(part[0], 1.0),
                                whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight)  # fmt: skip
-            bits, error = self._measure(self.make(k, len(values)), values, sens)
+            bits, error = self._measure(codec, values, sens)
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
@@ -167,14 +167,14 @@ class RateDistortion:
         # Every (n / RATE_SAMPLE)-th Gaussian along the coding order: spread over the whole scene like the set.
         sample = np.linspace(0, n - 1, RATE_SAMPLE).round().astype(np.int64) if n > RATE_SAMPLE else None
         s, x = start, self.extent
-        step = lambda base: (lambda k, rows=0: base * 2.0 ** (k / 2))  # noqa: E731
+        step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
         ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, sample=sample, **kw)  # noqa: E731
         self.ladders: dict[str, list[Ladder]] = {
-            "means": [ladder("means", lambda k, rows: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
-            "quats": [ladder("quats", lambda k, rows: RotationCodec(step(s.rotation)(k)))],
-            "scales": [ladder("scales", lambda k, rows: ScalarGridCodec(step(s.scale)(k)))],
-            "opacities": [ladder("opacities", lambda k, rows: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
-            "sh_dc": [ladder("sh_dc", lambda k, rows: ShDcCodec(step(s.dc)(k)))],
+            "means": [ladder("means", lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
+            "quats": [ladder("quats", lambda k: RotationCodec(step(s.rotation)(k)))],
+            "scales": [ladder("scales", lambda k: ScalarGridCodec(step(s.scale)(k)))],
+            "opacities": [ladder("opacities", lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
+            "sh_dc": [ladder("sh_dc", lambda k: ShDcCodec(step(s.dc)(k)))],
         }  # fmt: skip
         self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample)
         self._at: dict[tuple[str, int], int] = {}
@@ -184,16 +184,15 @@ class RateDistortion:
         """Per coefficient, and, with higher bands, as a palette (weighted by each row's sensitivity, so rows the
         renders hardly see take coarser entry steps)."""
         bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
-        ladders = [Ladder("sh_rest", sh_rest, lambda k, rows: ShRestCodec(bands(k)), self.sens, exhaustive=False,
+        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, exhaustive=False,
                           sample=sample)]  # fmt: skip
         if self.stored.sh_degree:
             size = palette_start(self.stored.sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
-
             # A palette codes a vector per entry, not per Gaussian: its steps start finer by the square root of
             # entries per Gaussian, for the same error per coded component.
             finer = math.sqrt(min(1.0, size / max(len(sh_rest), 1)))
-            palette = lambda k, rows: ShPaletteCodec(size, tuple(b * finer for b in bands(k)), weights)  # noqa: E731
+            palette = lambda k: ShPaletteCodec(size, tuple(b * finer for b in bands(k)), weights)  # noqa: E731
             # No sample: a sample's palette would be fitted to fewer rows, and its error would be the clustering's,
             # not the steps'.
             ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
