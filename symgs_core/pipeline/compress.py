@@ -140,12 +140,13 @@ def compress(
     # What the archive carries besides the scene; the same job gives the same bytes whichever door it came by.
     meta = {"input_gaussians": len(source), "sh_degree": source.sh_degree,
             "coordinate_convention": COORDINATE_CONVENTION}  # fmt: skip
-    start = QuantSteps().scaled(PRESETS[config.preset].step_scale) if config.quantized else None
+    spec = PRESETS[config.preset]
+    start = QuantSteps().scaled(spec.step_scale) if config.quantized else None
     fits: dict[int, Fitted] = {}
 
     def fit(state: LevelState, psnr: float, progress=None) -> Fitted:  # noqa: ANN001 - encode.FitProgress
         """The state's archive at the floor, remembered for the state the levels end on."""
-        if start is not None and not PRESETS[config.preset].fitted:
+        if start is not None and not spec.fitted:
             fits[id(state)] = fixed_codec(state, views.fit, background, steps=start, meta=meta, name=config.preset)
             return fits[id(state)]
         fits[id(state)] = fit_codec(state, views.fit, background, floor=floor, psnr_before=psnr, start=start,
@@ -159,14 +160,14 @@ def compress(
     plain = fit(plain_state, reference, progress=lambda within, message: report("codec", within, message))
     report.timed("codec", time.perf_counter() - t0)
     # Levels are judged by fitted archives: a preset that fits nothing keeps none.
-    max_levels = config.max_levels if config.use_mirrors and PRESETS[config.preset].fitted else 0
+    max_levels = config.max_levels if config.use_mirrors and spec.fitted else 0
     t0 = time.perf_counter()
     state, psnr, records = run_levels(
         source, views, config=replace(config, max_levels=max_levels), floor=floor, reference=reference,
         extent=radius, judge=lambda st, p: len(fit(st, p).archive), plain_bytes=len(plain.archive),
         steps=plain.steps, report=report,
         checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
-        fingerprint=_fingerprint(source, config, images),
+        fingerprint=_fingerprint(source, config, images) if checkpoint_dir is not None else "",
     )  # fmt: skip
     report.timed("levels", time.perf_counter() - t0)
     if not state.normals.shape[0]:  # no level kept: the result is the plain codec's archive, already fitted

@@ -151,6 +151,7 @@ def plan_attempts(
 
 
 def hopeless(psnr_before: float, floor: float) -> bool:
+    """Whether a membership starts too far below the floor for a fine-tune to bring it back (``TUNE_GAIN``)."""
     return psnr_before < floor - TUNE_GAIN
 
 
@@ -248,7 +249,8 @@ def run_levels(
     fingerprint: str,
 ) -> tuple[LevelState, float, list[LevelReport]]:
     """Accept mirror levels while each makes the archive smaller (``judge``) at the floor than the best so far, the
-    plain codec's ``plain_bytes`` to begin with; resume from ``checkpoint`` when it matches. Returns the state, its
+    plain codec's ``plain_bytes`` to begin with; resume from ``checkpoint`` when its ``fingerprint`` (the job's
+    inputs) matches. Returns the state, its
     fitting PSNR and a record of every level tried.
 
     ``steps``: the plain codec's steps, which the fine-tunes round to (straight-through) so that what they learn
@@ -276,14 +278,15 @@ def run_levels(
         for membership, psnr_before in attempts:
             t0 = time.perf_counter()
             candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
-            if hopeless(psnr_before, floor):
+            skipped = hopeless(psnr_before, floor)
+            if skipped:
                 tuned, psnr_after, run = candidate.detach(), psnr_before, 0
             else:
                 tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
                                               extent=extent, spacing=spacing, steps=steps, report=report)  # fmt: skip
             report.timed("optimize", time.perf_counter() - t0)
             archive_bytes = None
-            if hopeless(psnr_before, floor):
+            if skipped:
                 accepted_now, reason = False, (f"not fine-tuned: it starts at {psnr_before:.2f} dB, more than "
                                                f"{TUNE_GAIN:g} dB below the floor {floor:.2f} dB")  # fmt: skip
             elif psnr_after < floor:
