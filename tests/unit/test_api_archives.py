@@ -161,16 +161,18 @@ def test_layout_is_checked_before_extracting(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def _tar_add(tf: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size = len(data)
+    tf.addfile(info, io.BytesIO(data))
+
+
 def test_tar_bomb_stops_at_its_header(tmp_path: Path) -> None:
     bomb = tmp_path / "bomb.tar.gz"
     with tarfile.open(bomb, "w:gz") as tf:
         for name, data in NERF.items():
-            info = tarfile.TarInfo(name)
-            info.size = len(data)
-            tf.addfile(info, io.BytesIO(data))
-        info = tarfile.TarInfo("scene/zeros")
-        info.size = 64 << 20
-        tf.addfile(info, io.BytesIO(bytes(info.size)))
+            _tar_add(tf, name, data)
+        _tar_add(tf, "scene/zeros", bytes(64 << 20))
     error = _error(lambda: extract_dataset(bomb, tmp_path / "out", GENEROUS))
     assert (error.status, error.code) == (413, "archive_too_large")
     assert _written(tmp_path / "out") == 0
@@ -189,18 +191,14 @@ def test_tar_links_and_devices_are_refused(tmp_path: Path, kind: bytes) -> None:
 def test_tar_bomb_and_traversal(tmp_path: Path) -> None:
     bomb = tmp_path / "bomb.tar.xz"
     with tarfile.open(bomb, "w:xz") as tf:
-        info = tarfile.TarInfo("scene/zeros")
-        info.size = 3 << 20
-        tf.addfile(info, io.BytesIO(bytes(info.size)))
+        _tar_add(tf, "scene/zeros", bytes(3 << 20))
     assert bomb.stat().st_size < 10_000
     error = _error(lambda: extract(bomb, tmp_path / "out", LIMITS))
     assert (error.status, error.code) == (413, "archive_too_large")
 
     sneaky = tmp_path / "sneaky.tar.gz"
     with tarfile.open(sneaky, "w:gz") as tf:
-        info = tarfile.TarInfo("../../sneaky.txt")
-        info.size = 1
-        tf.addfile(info, io.BytesIO(b"x"))
+        _tar_add(tf, "../../sneaky.txt", b"x")
     assert _error(lambda: extract(sneaky, tmp_path / "out2", LIMITS)).code == "unsafe_entry"
     assert not (tmp_path / "sneaky.txt").exists() and not Path(os.path.dirname(tmp_path), "sneaky.txt").exists()
 
@@ -209,9 +207,7 @@ def test_tar_dataset_is_extracted(tmp_path: Path) -> None:
     path = tmp_path / "d.tar.gz"
     with tarfile.open(path, "w:gz") as tf:
         for name, data in NERF.items():
-            info = tarfile.TarInfo(name)
-            info.size = len(data)
-            tf.addfile(info, io.BytesIO(data))
+            _tar_add(tf, name, data)
     dataset = extract_dataset(path, tmp_path / "out", LIMITS)
     assert (dataset.layout, dataset.root, dataset.images) == ("nerf_synthetic", "scene", 2)
 
