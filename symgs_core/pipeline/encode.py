@@ -70,6 +70,8 @@ class Fitted:
     dropped_bands: int = 0  # SH bands left out, over every Gaussian
     tries: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    rd: RateDistortion | None = None  # the rate model the codec was chosen by (``size_ratio``)
+    allowed: float = 0.0  # the growth of the fitting MSE the floor left the codec
 
 
 def _without(state: LevelState, keep: Tensor) -> LevelState:
@@ -173,8 +175,33 @@ def fit_codec(
     if best is None:
         best = Fitted(state, write_archive(state, meta), psnr_before, _LOSSLESS)
     best.tries, best.seconds = tries, time.perf_counter() - t0
+    if best.choice is not None:
+        best.rd, best.allowed = rd, allowed
     best.codec = CodecReport(best.codec.name, best.codec.steps, best.codec.floor, len(tries))
     return best
+
+
+def size_ratio(fitted: Fitted, floor: float, psnr_from: float, psnr_to: float) -> float:
+    """Predicted bytes of ``fitted``'s state coded to ``floor`` were its own fitting PSNR ``psnr_to`` instead of
+    ``psnr_from``, over its bytes at ``psnr_from``; by the rate model it was fitted with, calibrated as it was.
+
+    What a change to the state costs in budget, it costs in bytes: the codec gets only the MSE the floor leaves.
+    ``inf`` where nothing is left."""
+    rd, choice = fitted.rd, fitted.choice
+    if rd is None or choice is None or fitted.allowed <= 0:
+        raise ValueError("the state was not fitted with a rate model (float32 or fixed steps)")
+    pruned = fitted.pruned
+    calibration = choice.error / max(_AIM * fitted.allowed - pruned, 1e-300)
+
+    def bits(psnr: float) -> float:
+        target = calibration * (_AIM * (psnr_to_mse(floor) - psnr_to_mse(psnr)) - pruned)
+        if target <= 0:
+            return math.inf
+        at = rd.choose(target, keep=choice.keep)
+        return at.bits if at.error <= target else math.inf
+
+    before = bits(psnr_from)
+    return bits(psnr_to) / before if math.isfinite(before) and before > 0 else 1.0
 
 
 def fixed_codec(

@@ -132,22 +132,53 @@ def _spacing(means: torch.Tensor) -> float:
     return float(max(float(torch.tensor(distances[:, 1]).median()), 1e-12))
 
 
-def plan_attempts(
-    state: LevelState, options: list[Membership], views: ViewSet, *, floor: float
-) -> list[tuple[Membership, float]]:
-    """The memberships to consider, with their PSNR before the fine-tune (at most ``MAX_ATTEMPTS``): those worth a
-    fine-tune first, loosest first.
+Rate = Callable[[float, float], float]  # (state's fitting PSNR, a candidate's) -> predicted ratio of archive bytes
 
-    A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set). Those that
-    start more than ``TUNE_GAIN`` dB below the floor are listed but not fine-tuned (``hopeless``): a fine-tune of
-    the whole budget's worth of steps would not bring them back, and on a large scene it costs minutes.
+
+@dataclass(frozen=True)
+class Attempt:
+    """A membership to try: its PSNR before the fine-tune and, with a rate model, the bytes its archive is
+    predicted at should the fine-tune gain ``TUNE_GAIN`` dB (None: no model)."""
+
+    membership: Membership
+    psnr_before: float
+    predicted: float | None
+
+    def pays(self, floor: float, best_bytes: int) -> bool:
+        if self.predicted is not None:
+            return self.predicted < best_bytes
+        return not hopeless(self.psnr_before, floor)
+
+
+def plan_attempts(
+    state: LevelState, psnr: float, options: list[Membership], views: ViewSet, *, floor: float, rate: Rate | None,
+    best_bytes: int,
+) -> list[Attempt]:
+    """The memberships to consider (at most ``MAX_ATTEMPTS``), those that may pay first, the smallest predicted
+    archive first (without a rate model, the loosest).
+
+    A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set). One that
+    cannot pay is listed but not fine-tuned: with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
+    starts at would leave the codec too little of the budget to make the archive smaller than ``best_bytes`` (a
+    mirror spends the same error the quantiser needs); without, when it starts more than ``TUNE_GAIN`` dB below the
+    floor. A fine-tune costs minutes on a large scene, and the rate model a few encodes.
     """
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
-    scored = []
+    attempts = []
     for m in worth:
         candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
-        scored.append((m, evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst))
-    return sorted(scored, key=lambda mp: hopeless(mp[1], floor))[:MAX_ATTEMPTS]  # stable: loosest first within each
+        before = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
+        predicted = None
+        if rate is not None:
+            share = len(candidate.stored) / max(len(state.stored), 1)
+            predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
+        attempts.append(Attempt(m, before, predicted))
+    def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
+        if a.predicted is None:
+            return not a.pays(floor, best_bytes), 0.0, 0.0
+        return not a.pays(floor, best_bytes), a.predicted, -a.psnr_before  # then the closest to the floor first
+
+    return sorted(attempts, key=rank)[:MAX_ATTEMPTS]
 
 
 def hopeless(psnr_before: float, floor: float) -> bool:
@@ -201,6 +232,17 @@ def tune(
     return tuned, psnr, run
 
 
+def _unpaid(attempt: Attempt, floor: float, best_bytes: int) -> str:
+    """Why ``attempt`` was not fine-tuned."""
+    start = f"not fine-tuned: it starts at {attempt.psnr_before:.2f} dB"
+    if attempt.predicted is None:
+        return f"{start}, more than {TUNE_GAIN:g} dB below the floor {floor:.2f} dB"
+    if not math.isfinite(attempt.predicted):
+        return f"{start}; even {TUNE_GAIN:g} dB more would leave the codec no room under the floor {floor:.2f} dB"
+    return (f"{start}; even {TUNE_GAIN:g} dB more would leave the codec so little of the budget that the archive "
+            f"is predicted at {attempt.predicted:,.0f} bytes, not below {best_bytes:,}")
+
+
 def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool,
                      best_bytes: int) -> None:  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -243,13 +285,15 @@ def run_levels(
     extent: float,
     judge: Judge,
     plain_bytes: int,
+    rate: Rate | None = None,
     steps: QuantSteps | None,
     report,  # noqa: ANN001 - pipeline._Reporter
     checkpoint: Path | None,
     fingerprint: str,
 ) -> tuple[LevelState, float, list[LevelReport]]:
     """Accept mirror levels while each makes the archive smaller (``judge``) at the floor than the best so far, the
-    plain codec's ``plain_bytes`` to begin with; resume from ``checkpoint`` when its ``fingerprint`` (the job's
+    plain codec's ``plain_bytes`` to begin with, skipping the fine-tune of memberships that ``rate`` predicts cannot
+    pay (``plan_attempts``); resume from ``checkpoint`` when its ``fingerprint`` (the job's
     inputs) matches. Returns the state, its
     fitting PSNR and a record of every level tried.
 
@@ -273,12 +317,14 @@ def run_levels(
         accepted = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
         mirrors = detect(state.stored, detect_config, exclude=accepted)
         report.timed("detect", time.perf_counter() - t0)
-        attempts = plan_attempts(state, memberships(state, mirrors[0]), views, floor=floor) if mirrors else []
+        options = memberships(state, mirrors[0]) if mirrors else []
+        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=rate, best_bytes=best_bytes)
         done = True
-        for membership, psnr_before in attempts:
+        for attempt in attempts:
+            membership, psnr_before = attempt.membership, attempt.psnr_before
             t0 = time.perf_counter()
             candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
-            skipped = hopeless(psnr_before, floor)
+            skipped = not attempt.pays(floor, best_bytes)
             if skipped:
                 tuned, psnr_after, run = candidate.detach(), psnr_before, 0
             else:
@@ -287,8 +333,7 @@ def run_levels(
             report.timed("optimize", time.perf_counter() - t0)
             archive_bytes = None
             if skipped:
-                accepted_now, reason = False, (f"not fine-tuned: it starts at {psnr_before:.2f} dB, more than "
-                                               f"{TUNE_GAIN:g} dB below the floor {floor:.2f} dB")  # fmt: skip
+                accepted_now, reason = False, _unpaid(attempt, floor, best_bytes)
             elif psnr_after < floor:
                 accepted_now, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
             else:

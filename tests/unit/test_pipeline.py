@@ -113,6 +113,29 @@ def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
     assert records[0].accepted and state.normals.shape[0] >= 1 and "shrinks" in records[0].reason
 
 
+def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_judged(symmetric):
+    """The rate model prices the budget a membership spends: where even a fine-tune's gain would leave the codec too
+    little to beat the best archive, the minutes of fine-tune and judge are not spent, and the report says why."""
+    scene = symmetric.scene
+    views = self_supervised_views(scene, train=4, fit=2, eval=2, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    config = replace(FAST, max_levels=1, iterations=4)
+    judged, priced = [], []
+
+    def run(ratio):  # noqa: ANN001, ANN202
+        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
+                          judge=lambda st, p: judged.append(p) or 9_000, plain_bytes=10_000,
+                          rate=lambda before, after: priced.append((before, after)) or ratio, steps=None,
+                          report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+
+    state, _, records = run(3.0)  # a third of the scene dropped, three times the bytes per Gaussian: no
+    assert priced and all(math.isinf(before) for before, _ in priced)
+    assert not judged and state.normals.shape[0] == 0
+    assert records and all(r.iterations == 0 and not r.accepted and "predicted at" in r.reason for r in records)
+    state, _, records = run(1.0)
+    assert judged and records[0].accepted and state.normals.shape[0] == 1
+
+
 def test_colour_gates_keep_asymmetric_details_out_of_a_level(symmetric):
     """A patch repainted on the right side only: the gated membership keeps it, the geometric one drops it."""
     scene = symmetric.scene.clone()
