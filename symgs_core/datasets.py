@@ -267,6 +267,38 @@ def load_nerf_synthetic(
     return _load_views(frames, background)
 
 
+def write_nerf_synthetic(root: str | Path, split: Split, cameras: list[Camera], images: list[Tensor]) -> None:
+    """The inverse of ``load_nerf_synthetic`` for one split: ``transforms_{split}.json`` (OpenGL camera-to-world,
+    the cameras' shared ``fl_x``, ``fl_y``, ``cx``, ``cy``) and ``{split}/r_{i}.png`` from images [H, W, 3] in
+    [0, 1], 8 bits per channel, no alpha (read back as they are, whatever the background)."""
+    from PIL import Image
+
+    if split not in _NERF_SPLITS:
+        raise DatasetError("bad_split", f"unknown split {split!r}; expected train, val or test")
+    if len(cameras) != len(images) or not cameras:
+        raise ValueError(f"{len(cameras)} cameras for {len(images)} images: one image per camera, at least one")
+    first = cameras[0]
+    intrinsics = lambda c: (c.fx, c.fy, c.cx, c.cy, c.width, c.height)  # noqa: E731
+    if any(intrinsics(c) != intrinsics(first) for c in cameras):
+        raise ValueError("the cameras of a NeRF-Synthetic split share their intrinsics")
+    root = Path(root)
+    (root / split).mkdir(parents=True, exist_ok=True)
+    flip = np.diag([1.0, -1.0, -1.0])
+    frames = []
+    for i, (camera, image) in enumerate(zip(cameras, images, strict=True)):
+        if tuple(image.shape) != (camera.height, camera.width, 3):
+            raise ValueError(f"image {i} is {tuple(image.shape)}, camera {i} is {camera.height}x{camera.width}")
+        pixels = (image.detach().cpu().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).numpy()
+        Image.fromarray(pixels, "RGB").save(root / split / f"r_{i}.png")
+        c2w = np.eye(4)
+        c2w[:3, :3] = camera.R.double().cpu().numpy().T @ flip
+        c2w[:3, 3] = camera.center.double().cpu().numpy()
+        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
+    meta = {"fl_x": first.fx, "fl_y": first.fy, "cx": first.cx, "cy": first.cy, "w": first.width, "h": first.height,
+            "frames": frames}  # fmt: skip
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # COLMAP
 

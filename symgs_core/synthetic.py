@@ -361,18 +361,20 @@ class _Design:
         return _Object(GaussianScene.cat([half, other]), idx[: len(half)], idx[len(half) :])
 
 
-def _nested_object(gen: torch.Generator, n: int, parts: int, k: int, capture: Capture) -> _Object:
-    """A symmetric object (mirror x = 0) whose x > 0 half holds a smaller symmetric object with its own mirror."""
+def _nested_object(gen: torch.Generator, samples: torch.Generator, n: int, parts: int, k: int,
+                   capture: Capture) -> _Object:  # fmt: skip
+    """A symmetric object (mirror x = 0) whose x > 0 half holds a smaller symmetric object with its own mirror;
+    the design drawn from ``gen``, the Gaussians from ``samples``."""
     sub_share = 0.4
     main = _Design.random(gen, int(n * (1 - sub_share)), parts, k)
     sub = _Design.random(gen, int(n * sub_share / 2), max(parts // 2, 3), k)
     sub_pose = Pose(tuple(_random_quat(gen).tolist()), (0.95, _u(gen, -0.3, 0.3), _u(gen, -0.3, 0.3)), 0.3)
-    sub_obj = sub.whole(gen, capture)
-    half = GaussianScene.cat([main.half(gen), apply_pose(sub_obj.scene, sub_pose)])
+    sub_obj = sub.whole(samples, capture)
+    half = GaussianScene.cat([main.half(samples), apply_pose(sub_obj.scene, sub_pose)])
     if capture == "twins":
         other = reflect(half, _X, 0.0)
     else:
-        again = GaussianScene.cat([main.half(gen), apply_pose(sub.whole(gen, capture).scene, sub_pose)])
+        again = GaussianScene.cat([main.half(samples), apply_pose(sub.whole(samples, capture).scene, sub_pose)])
         other = reflect(again, _X, 0.0)
     idx = torch.arange(len(half) + len(other))
     base = len(half) - len(sub_obj.scene)
@@ -413,6 +415,7 @@ def synthetic_scene(
     noise: float = 0.0,
     clutter: float = 0.0,
     pose: Pose | None = None,
+    sample_seed: int | None = None,
 ) -> SyntheticScene:
     """A scene of about ``n`` object Gaussians (plus clutter) with planted mirrors.
 
@@ -425,6 +428,9 @@ def synthetic_scene(
     noise     std of positional noise on the object Gaussians, as a fraction of the object's size (about 1)
     clutter   asymmetric extra Gaussians, as a fraction of the object Gaussians
     pose      a similarity transform applied to the whole scene (planes follow)
+    sample_seed  draws the Gaussians from a generator of their own (None: ``seed``'s, after the design): the same
+              ``seed`` then gives the same objects whatever ``n``, ``capture`` and ``sample_seed``, sampled anew, e.g.
+              a dense exact-twin sample to photograph as the truth and a capture of it (``bench_pipeline --photos``)
     """
     if sh_degree not in SH_REST_COUNT:
         raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
@@ -436,16 +442,17 @@ def synthetic_scene(
         raise ValueError(f"noise and clutter must be non-negative, got noise={noise}, clutter={clutter}")
     k = SH_REST_COUNT[sh_degree]
     gen = torch.Generator().manual_seed(seed)
+    samples = gen if sample_seed is None else torch.Generator().manual_seed(sample_seed)
     x_plane = Plane((1.0, 0.0, 0.0), 0.0)
 
     planes: list[Plane] = []
     lefts: list[Tensor] = []
     rights: list[Tensor] = []
     if kind == "global":
-        obj = _Design.random(gen, n, parts, k).whole(gen, capture)
+        obj = _Design.random(gen, n, parts, k).whole(samples, capture)
         scene, planes, lefts, rights = obj.scene, [x_plane], [obj.left], [obj.right]
     elif kind == "nested":
-        obj = _nested_object(gen, n, parts, k, capture)
+        obj = _nested_object(gen, samples, n, parts, k, capture)
         assert obj.sub is not None
         scene = obj.scene
         planes, lefts, rights = [x_plane, obj.sub[0]], [obj.left, obj.sub[1]], [obj.right, obj.sub[2]]
@@ -457,7 +464,8 @@ def synthetic_scene(
         axes = quat_to_matrix(_random_quat(gen))
         scenes = []
         for i, count in enumerate(counts):
-            obj = _Design.random(gen, count, parts if i == 0 else max(parts // 2, 3), k).whole(gen, capture)
+            design = _Design.random(gen, count, parts if i == 0 else max(parts // 2, 3), k)
+            obj = design.whole(samples, capture)
             where = torch.zeros(3) if i == 0 else 2.2 * axes[:, (i - 1) % 3] * (1.0 if i <= 3 else -1.0)
             pose = Pose(tuple(_random_quat(gen).tolist()), tuple(where.tolist()), 1.0 if i == 0 else 0.5)
             base = sum(len(sc) for sc in scenes)
@@ -468,18 +476,18 @@ def synthetic_scene(
         scene = GaussianScene.cat(scenes)
     elif kind == "asymmetric":
         blobs = _asymmetric_parts(gen, parts, k)
-        scene = _sample_parts(blobs, _allocate(blobs, n), gen, k)
+        scene = _sample_parts(blobs, _allocate(blobs, n), samples, k)
     else:
         raise ValueError(f"kind must be global, local, nested or asymmetric, got {kind!r}")
 
     if noise > 0:
-        scene = scene.with_(means=scene.means + noise * torch.randn(len(scene), 3, generator=gen))
+        scene = scene.with_(means=scene.means + noise * torch.randn(len(scene), 3, generator=samples))
     n_object = len(scene)
     if clutter > 0:
-        extra = _clutter(gen, int(round(clutter * n_object)), scene.means, scene.scales, k)
+        extra = _clutter(samples, int(round(clutter * n_object)), scene.means, scene.scales, k)
         scene = GaussianScene.cat([scene, extra])
     # Shuffle so that no method can lean on the order the halves were built in.
-    perm = torch.randperm(len(scene), generator=gen)
+    perm = torch.randperm(len(scene), generator=samples)
     inverse = torch.empty_like(perm)
     inverse[perm] = torch.arange(len(perm))
     scene = scene.select(perm)

@@ -24,6 +24,7 @@ from symgs_core.datasets import (
     load_dataset,
     load_nerf_synthetic,
     read_colmap_model,
+    write_nerf_synthetic,
 )
 from tests.conftest import shared_file
 
@@ -359,3 +360,19 @@ def test_snowmiku_colmap_matches_the_graphdeco_cameras(tmp_path: Path) -> None:
         assert_same_pose(a.camera, b.camera, atol=0)
     (view,) = load_dataset(root, "test", max_views=1)
     assert view.image.shape == (371, 495, 3) and float(view.image.std()) > 0.05
+
+
+def test_written_nerf_split_reads_back_as_it_was_written(tmp_path: Path) -> None:
+    """``write_nerf_synthetic`` is ``load_nerf_synthetic``'s inverse: the same poses, intrinsics and 8-bit pixels."""
+    cams = poses(3)
+    gen = torch.Generator().manual_seed(0)
+    images = [torch.rand(cam.height, cam.width, 3, generator=gen) for cam in cams]
+    write_nerf_synthetic(tmp_path, "train", cams, images)
+    views = load_nerf_synthetic(tmp_path, "train", background=(0.3, 0.6, 0.9))  # no alpha: the background is unused
+    for view, cam, image in zip(views, cams, images, strict=True):
+        assert_same_pose(view.camera, cam)
+        torch.testing.assert_close(view.image, (image * 255).round() / 255, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="intrinsics"):
+        write_nerf_synthetic(tmp_path / "mixed", "test", [cams[0], cams[0].resized(20, 15)], images[:1] * 2)
+    with pytest.raises(ValueError, match="one image per camera"):
+        write_nerf_synthetic(tmp_path / "short", "test", cams, images[:2])

@@ -1,0 +1,41 @@
+"""Generated scenes with photographs: the paper's protocol, where fidelity is measured against images of the object,
+not against renders of the upload.
+
+The object is drawn once (``synthetic_scene``'s design) and sampled twice (``sample_seed``): densely as exact twins,
+the truth that is photographed (symmetric, as the object is), and as the upload, whose mirrored half is an
+independent reconstruction. Reflected, the kept half of the upload renders the photographs about as well as the half
+it replaces: the two are samples of one surface.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ..cameras import scene_bounds
+from ..datasets import write_nerf_synthetic
+from ..render import render
+from ..scene import GaussianScene
+from ..synthetic import Capture, SceneKind, synthetic_scene
+from ..views import viewer_cameras
+
+TRUTH_DENSITY = 4  # the photographed truth holds this many times the upload's Gaussians
+
+
+def photographed(
+    kind: SceneKind, folder: str | Path, *, n: int, photos: int, tests: int, resolution: int, sh_degree: int = 1,
+    capture: Capture = "independent", seed: int = 0,
+) -> GaussianScene:  # fmt: skip
+    """The upload of a generated ``kind`` scene of about ``n`` Gaussians; ``photos`` training and ``tests`` test
+    photographs (``resolution`` px square, black background) of its truth written to ``folder`` as NeRF-Synthetic."""
+    common = {"seed": seed, "sh_degree": sh_degree}
+    upload = synthetic_scene(kind, n=n, capture=capture, sample_seed=2 * seed + 1, **common).scene
+    truth = synthetic_scene(kind, n=TRUTH_DENSITY * n, capture="twins", sample_seed=2 * seed + 2, **common).scene
+    centre, radius = scene_bounds(truth.means)
+    for split, count, rig in (("train", photos, 11), ("test", tests, 12)):
+        cameras = viewer_cameras(centre, radius, count, resolution, seed=1000 * seed + rig, name=split)
+        with torch.no_grad():
+            images = [render(truth, camera, torch.zeros(3)).image for camera in cameras]
+        write_nerf_synthetic(folder, split, cameras, images)
+    return upload
