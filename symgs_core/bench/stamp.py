@@ -34,8 +34,8 @@ def commit() -> str:
     head = _git("rev-parse", "--short=12", "HEAD")
     if head is None:
         return "unknown"
-    status = _git("status", "--porcelain", "--untracked-files=no") or ""
-    dirty = [line[3:] for line in status.splitlines() if not line[3:].startswith(_OUTPUTS)]
+    changed = _git("diff", "--name-only", "HEAD") or ""  # tracked files, staged or not
+    dirty = [name for name in changed.splitlines() if not name.startswith(_OUTPUTS)]
     return head + ("+changes" if dirty else "")
 
 

@@ -84,3 +84,24 @@ def test_a_run_rewrites_its_blocks_with_the_stamp(run_all, tmp_path: Path,  # no
     assert "| broken | - | - | - | - |" in text
     with pytest.raises(SystemExit):  # a file without the entries' blocks is refused before anything runs
         run_all.main(["--file", str(tmp_path / "times.json")])
+
+
+def test_the_stamp_names_a_change_of_code_and_not_of_the_benchmarks_own_outputs(tmp_path: Path, monkeypatch) -> None:
+    """``+changes`` means the code measured is not the commit's; what ``make bench`` writes (BENCHMARKS.md first of
+    all, whose status line git prints with a leading space) is not such a change."""
+    import subprocess
+
+    from symgs_core.bench import stamp
+
+    git = lambda *args: subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)  # noqa: E731
+    git("init", "-q")
+    for name in ("BENCHMARKS.md", "code.py"):
+        (tmp_path / name).write_text("first\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    monkeypatch.setattr(stamp, "ROOT", tmp_path)
+    assert not stamp.commit().endswith("+changes")
+    (tmp_path / "BENCHMARKS.md").write_text("second\n")
+    assert not stamp.commit().endswith("+changes")
+    (tmp_path / "code.py").write_text("second\n")
+    assert stamp.commit().endswith("+changes")
