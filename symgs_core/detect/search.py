@@ -31,6 +31,9 @@ _SPARE_PEAKS = 2  # peaks per candidate or known mirror: one plane may leave a p
 _CHANCE_PLANES = 6  # random planes that measure how much matches by chance
 _MAX_PARTS = 8  # separate parts of a working set searched on their own, largest first
 _SAME_ANGLE_DEG = 1.0  # a part's mirror this close to the whole set's is that mirror
+# A part holding more than this share of the working set is most of it: its mirror is significant in the whole set's
+# search already, and searching it again would double the time of a scene that is one object and scattered floaters.
+_LARGEST_PART = 0.5
 _HOPELESS_SE = 4.0  # a candidate whose sampled matched share is this many standard errors below min_coverage ...
 
 
@@ -98,7 +101,8 @@ def _detect_in_parts(scene: GaussianScene, config: DetectConfig, level: int, kno
     if frame is None:
         return []
     out = []
-    for part in spatial_components(scene.means, frame.radius, min_size=config.min_gaussians)[:_MAX_PARTS]:
+    parts = spatial_components(scene.means, frame.radius, min_size=config.min_gaussians)
+    for part in [p for p in parts if p.numel() <= _LARGEST_PART * len(scene)][:_MAX_PARTS]:
         found = _detect_level(scene.select(part), config, level, known)
         if found is not None:
             plane, votes, sides, timings = found
