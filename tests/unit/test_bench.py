@@ -179,3 +179,15 @@ def test_bench_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert main(["bench", str(tmp_path / "s.ply"), "--out", str(tmp_path), "--presets", "tiny"]) == 2
     assert main(["bench", str(tmp_path / "s.ply"), "--out", str(tmp_path), "--sweep", "-1"]) == 2
     assert "unknown presets" in capsys.readouterr().err
+
+
+def test_a_float32_run_reaches_every_psnr_but_is_no_point_of_the_curve() -> None:
+    """The lossless preset's renders differ by float rounding only, at whatever PSNR that measures (73 dB on one real
+    scene): a peer between our finest lossy run and it is not spanned, so the sweep aims at it."""
+    lossless = BenchRow("s", OURS, "preset", "ok", "l.symgs", preset="lossless", bytes=round(oracle(90.0)),
+                        psnr_db=73.0, psnr_other_db=75.0)  # fmt: skip
+    rows = [ours(40.0, 40.0, floor=40.0), ours(50.0, 50.0, floor=50.0), lossless]
+    assert next_floor(rows, "s", [60.0], []) == pytest.approx(60.5)
+    peer_row = peer(round(oracle(60.0)), 60.0, 60.0)
+    equal_fidelity([*rows, peer_row], "s")
+    assert peer_row.equal_psnr_bytes is None and peer_row.claim_holds_other is None
