@@ -170,7 +170,6 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
     out = args.work / label
     out.mkdir(exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # the children run this checkout's code
-    symgs = SYMGS
     row: dict = {"label": label, "gaussians": SIZES[label], "ply_bytes": ply.stat().st_size, "preset": args.preset,
                  "time_limit_s": args.time_limit, "load_before": os.getloadavg()[0],
                  "parent_rss_mib": _rss_mib()}  # fmt: skip
@@ -178,7 +177,7 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
     archive, report = out / "out.symgs", out / "report.json"
     for stale in (archive, report):
         stale.unlink(missing_ok=True)
-    cmd = [*symgs, "compress", str(ply), "-o", str(archive), "--report", str(report), "--preset", args.preset,
+    cmd = [*SYMGS, "compress", str(ply), "-o", str(archive), "--report", str(report), "--preset", args.preset,
            *args.compress_args.split()]  # fmt: skip
     print(f"[{label}] symgs {' '.join(cmd[len(SYMGS):])}", flush=True)
     run = run_child(cmd, limit_s=args.time_limit, log=out / "compress.log", env=env)
@@ -208,9 +207,7 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
         read_back = out / "peer_v4.ply"
         subprocess.run([exe, "-w", "-q", str(out / "peer_v4.spz"), str(read_back)], capture_output=True, check=False)
         for key, candidate in (("psnr_symgs", archive), ("psnr_spz_v4", read_back)):
-            done = subprocess.run([*symgs, "evaluate", str(ply), str(candidate), "--json"], capture_output=True,
-                                  text=True, env=env)  # fmt: skip
-            row[key] = json.loads(done.stdout)["psnr"] if done.returncode == 0 else None
+            row[key] = evaluated(ply, candidate, env)
         if not args.no_equal and None not in (row["psnr_symgs"], row["psnr_spz_v4"]) and (
             row["psnr_symgs"] < row["psnr_spz_v4"]
         ):
@@ -232,10 +229,15 @@ def equal_fidelity(label: str, ply: Path, psnr: float, args: argparse.Namespace,
     run = run_child(cmd, limit_s=args.time_limit, log=out / "compress.log", env=env)
     if run.rc != 0:
         return {"run": asdict(run), "floor_db": psnr}
-    done = subprocess.run([*SYMGS, "evaluate", str(ply), str(archive), "--json"], capture_output=True, text=True,
+    return {"run": asdict(run), "floor_db": psnr, "bytes": archive.stat().st_size,
+            "psnr": evaluated(ply, archive, env)}  # fmt: skip
+
+
+def evaluated(ply: Path, candidate: Path, env: dict[str, str]) -> float | None:
+    """`symgs evaluate`'s PSNR of ``candidate`` against ``ply`` (None where it fails)."""
+    done = subprocess.run([*SYMGS, "evaluate", str(ply), str(candidate), "--json"], capture_output=True, text=True,
                           env=env)  # fmt: skip
-    measured = json.loads(done.stdout)["psnr"] if done.returncode == 0 else None
-    return {"run": asdict(run), "floor_db": psnr, "bytes": archive.stat().st_size, "psnr": measured}
+    return json.loads(done.stdout)["psnr"] if done.returncode == 0 else None
 
 
 # -- table and chart -------------------------------------------------------------------------------------------

@@ -37,6 +37,9 @@ Layout = Literal["nerf_synthetic", "colmap"]
 LLFF_HOLD = 8
 _NERF_SPLITS = ("train", "val", "test")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+# NeRF-Synthetic's OpenGL camera axes (x right, y up, z back) to ours, OpenCV's (x right, y down, z forward); its own
+# inverse.
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 
 # COLMAP camera models: id -> (name, parameter count).
 COLMAP_MODELS = {
@@ -198,8 +201,6 @@ def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
         raise DatasetError("bad_transforms", f"{path.name}: expected an object with a 'frames' list")
     if "camera_angle_x" not in meta and "fl_x" not in meta:
         raise DatasetError("bad_transforms", f"{path.name}: neither 'camera_angle_x' nor 'fl_x' is given")
-    # OpenGL camera axes (x right, y up, z back) -> OpenCV (x right, y down, z forward).
-    flip = np.diag([1.0, -1.0, -1.0])
     frames = []
     for i, frame in enumerate(meta["frames"]):
         try:
@@ -212,7 +213,7 @@ def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
         image_path = _find_image(root, file_path)
         width, height = _image_size(image_path)
         fx, fy, cx, cy = _nerf_intrinsics(meta, width, height, path)
-        rotation = (c2w[:3, :3] @ flip).T
+        rotation = (c2w[:3, :3] @ _GL_TO_CV).T
         t = -rotation @ c2w[:3, 3]
         camera = Camera(
             torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), fx, fy, cx, cy, width, height, file_path
@@ -283,7 +284,6 @@ def write_nerf_synthetic(root: str | Path, split: Split, cameras: list[Camera], 
         raise ValueError("the cameras of a NeRF-Synthetic split share their intrinsics")
     root = Path(root)
     (root / split).mkdir(parents=True, exist_ok=True)
-    flip = np.diag([1.0, -1.0, -1.0])
     frames = []
     for i, (camera, image) in enumerate(zip(cameras, images, strict=True)):
         if tuple(image.shape) != (camera.height, camera.width, 3):
@@ -291,7 +291,7 @@ def write_nerf_synthetic(root: str | Path, split: Split, cameras: list[Camera], 
         pixels = (image.detach().cpu().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).numpy()
         Image.fromarray(pixels, "RGB").save(root / split / f"r_{i}.png")
         c2w = np.eye(4)
-        c2w[:3, :3] = camera.R.double().cpu().numpy().T @ flip
+        c2w[:3, :3] = camera.R.double().cpu().numpy().T @ _GL_TO_CV
         c2w[:3, 3] = camera.center.double().cpu().numpy()
         frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
     meta = {"fl_x": first.fx, "fl_y": first.fy, "cx": first.cx, "cy": first.cy, "w": first.width, "h": first.height,

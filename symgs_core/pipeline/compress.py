@@ -19,7 +19,7 @@ from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
 from ..views import dataset_views, evaluate, self_supervised_views
-from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, size_ratio, stages
+from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, rate_model, stages
 from .levels import run_levels
 from .state import LevelState
 
@@ -165,7 +165,7 @@ def compress(
     state, psnr, records = run_levels(
         source, views, config=replace(config, max_levels=max_levels), floor=floor, reference=reference,
         extent=radius, judge=lambda st, p: len(fit(st, p).archive), plain_bytes=len(plain.archive),
-        rate=(lambda before, after: size_ratio(plain, floor, before, after)) if plain.rd is not None else None,
+        rate=rate_model(plain, floor) if plain.rd is not None else None,
         steps=plain.steps, report=report,
         checkpoint=Path(checkpoint_dir) / "levels.pt" if checkpoint_dir is not None else None,
         fingerprint=_fingerprint(source, config, images) if checkpoint_dir is not None else "",

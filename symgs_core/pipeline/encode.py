@@ -8,6 +8,7 @@ archives store each rotation in its canonical frame (``codec.frames``). Preset `
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -70,7 +71,7 @@ class Fitted:
     dropped_bands: int = 0  # SH bands left out, over every Gaussian
     tries: list[dict] = field(default_factory=list)
     seconds: float = 0.0
-    rd: RateDistortion | None = None  # the rate model the codec was chosen by (``size_ratio``)
+    rd: RateDistortion | None = None  # the rate model the codec was chosen by (``rate_model``)
     allowed: float = 0.0  # the growth of the fitting MSE the floor left the codec
 
 
@@ -181,18 +182,16 @@ def fit_codec(
     return best
 
 
-def size_ratio(fitted: Fitted, floor: float, psnr_from: float, psnr_to: float) -> float:
-    """Predicted bytes of ``fitted``'s state coded to ``floor`` were its own fitting PSNR ``psnr_to`` instead of
-    ``psnr_from``, over its bytes at ``psnr_from``; by the rate model it was fitted with, calibrated as it was.
-
-    What a change to the state costs in budget, it costs in bytes: the codec gets only the MSE the floor leaves.
-    ``inf`` where nothing is left."""
+def rate_model(fitted: Fitted, floor: float) -> Callable[[float, float], float]:
+    """``size_ratio`` of ``fitted`` at ``floor`` as one function of (``psnr_from``, ``psnr_to``), each PSNR's bits
+    priced once: the level loop asks about every membership from the same state."""
     rd, choice = fitted.rd, fitted.choice
     if rd is None or choice is None or fitted.allowed <= 0:
         raise ValueError("the state was not fitted with a rate model (float32 or fixed steps)")
     pruned = fitted.pruned
     calibration = choice.error / max(_AIM * fitted.allowed - pruned, 1e-300)
 
+    @functools.cache
     def bits(psnr: float) -> float:
         target = calibration * (_AIM * (psnr_to_mse(floor) - psnr_to_mse(psnr)) - pruned)
         if target <= 0:
@@ -200,8 +199,20 @@ def size_ratio(fitted: Fitted, floor: float, psnr_from: float, psnr_to: float) -
         at = rd.choose(target, keep=choice.keep)
         return at.bits if at.error <= target else math.inf
 
-    before = bits(psnr_from)
-    return bits(psnr_to) / before if math.isfinite(before) and before > 0 else 1.0
+    def ratio(psnr_from: float, psnr_to: float) -> float:
+        before = bits(psnr_from)
+        return bits(psnr_to) / before if math.isfinite(before) and before > 0 else 1.0
+
+    return ratio
+
+
+def size_ratio(fitted: Fitted, floor: float, psnr_from: float, psnr_to: float) -> float:
+    """Predicted bytes of ``fitted``'s state coded to ``floor`` were its own fitting PSNR ``psnr_to`` instead of
+    ``psnr_from``, over its bytes at ``psnr_from``; by the rate model it was fitted with, calibrated as it was.
+
+    What a change to the state costs in budget, it costs in bytes: the codec gets only the MSE the floor leaves.
+    ``inf`` where nothing is left."""
+    return rate_model(fitted, floor)(psnr_from, psnr_to)
 
 
 def fixed_codec(

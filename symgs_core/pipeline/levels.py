@@ -173,6 +173,7 @@ def plan_attempts(
             share = len(candidate.stored) / max(len(state.stored), 1)
             predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
         attempts.append(Attempt(m, before, predicted))
+
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
         if a.predicted is None:
             return not a.pays(floor, best_bytes), 0.0, 0.0
@@ -293,9 +294,8 @@ def run_levels(
 ) -> tuple[LevelState, float, list[LevelReport]]:
     """Accept mirror levels while each makes the archive smaller (``judge``) at the floor than the best so far, the
     plain codec's ``plain_bytes`` to begin with, skipping the fine-tune of memberships that ``rate`` predicts cannot
-    pay (``plan_attempts``); resume from ``checkpoint`` when its ``fingerprint`` (the job's
-    inputs) matches. Returns the state, its
-    fitting PSNR and a record of every level tried.
+    pay (``plan_attempts``); resume from ``checkpoint`` when its ``fingerprint`` (the job's inputs) matches. Returns
+    the state, its fitting PSNR and a record of every level tried.
 
     ``steps``: the plain codec's steps, which the fine-tunes round to (straight-through) so that what they learn
     survives the codec (None: float32).
