@@ -7,14 +7,14 @@ independent rig (another seed: other directions over the same distances). Our ru
 cameras, which neither rig contains.
 
 Equal fidelity: the sweep adds runs of ours (mirrors on, the preset nearest to each floor) at budgets chosen from
-the peers' PSNRs until our curve spans every peer's PSNR or the sweep's runs are spent; each peer row then carries
-our size at its PSNR (``curve.size_at``) and whether that claim still holds on the other rig.
+the peers' PSNRs until our curve spans every peer's PSNR, and a run of ours reaches on the other rig the PSNR each
+peer we claim to beat has there, or the sweep's runs are spent; each peer row then carries our size at its PSNR
+(``curve.size_at``) and whether that claim still holds on the other rig.
 """
 
 from __future__ import annotations
 
 import math
-import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -142,6 +142,7 @@ def curve_points(rows: list[BenchRow], scene: str, method: str = OURS, field: st
     object), or the other rig's. A run that stores float32 (preset ``lossless``) is lossless whatever its renders'
     rounding measures (73 dB on one scene, 142 on another): it reaches every PSNR and is no point to interpolate
     along (``curve``), so a peer between our finest lossy run and it is met by the sweep, not by interpolation."""
+
     def psnr(r: BenchRow) -> float | None:
         value = getattr(r, field)
         stored_float32 = r.preset in PRESETS and not PRESETS[r.preset].step_scale > 0
@@ -157,26 +158,46 @@ def _nearest_preset(floor: float, nominal: float) -> str:
 
 
 def next_floor(
-    rows: list[BenchRow], scene: str, targets: list[float], tried: list[float], method: str = OURS
+    rows: list[BenchRow],
+    scene: str,
+    targets: list[float],
+    tried: list[float],
+    method: str = OURS,
+    other: list[float] | None = None,
 ) -> float | None:
     """The fitting floor for our next sweep run: aimed past the first target PSNR our curve does not span (a peer's
-    evaluation PSNR), corrected by how far our runs' evaluation PSNR has landed from their floors so far; None
-    when the curve spans every target."""
-    points = curve_points(rows, scene, method)
-    missing = [t for t in targets if t < LOSSLESS_DB and not curve.spans(points, t)]
+    evaluation PSNR), then at the first ``other`` PSNR no lossy run of ours reaches on the other rig (where a claim
+    is checked), corrected by how far the run of ours nearest it on that rig landed from its floor; None when
+    every target is met."""
+    main = curve_points(rows, scene, method)
+    missing = [("psnr_db", t) for t in targets if t < LOSSLESS_DB and not curve.spans(main, t)]
+    if not missing and other:
+        reached = curve.front(curve_points(rows, scene, method, "psnr_other_db"))
+        missing = [("psnr_other_db", t) for t in other if t < LOSSLESS_DB and (not reached or reached[-1][1] < t)]
     if not missing:
         return None
-    target = missing[0]
+    field, target = missing[0]
     ours = [r for r in rows if r.scene == scene and r.method == method and r.ok]
-    offsets = [r.psnr_db - r.floor_db for r in ours if r.floor_db is not None and r.psnr_db is not None
-               and math.isfinite(r.psnr_db) and math.isfinite(r.floor_db)]  # fmt: skip
-    offset = statistics.median(offsets) if offsets else 0.0
-    front = curve.front(points)
+    landed = [(getattr(r, field), r.floor_db) for r in ours]
+    landed = [(p, f) for p, f in landed if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
+    # The offset of the run that landed nearest the target: presets far from it land differently (fixed steps).
+    offset = min(landed, key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
+    offset_db = offset[0] - offset[1]
+    front = curve.front(curve_points(rows, scene, method, field))
     up = not front or target > front[-1][1]
-    floor = target - offset + (0.5 if up else -0.5)
+    floor = target - offset_db + (0.5 if up else -0.5)
     while any(abs(floor - t) < 0.25 for t in tried):
         floor += 1.0 if up else -1.0
     return floor
+
+
+def other_targets(rows: list[BenchRow], scene: str, method: str) -> list[float]:
+    """The other rig's PSNR, less the tolerance, of each peer our curve claims to beat: what a run of ours must
+    reach there for the claim to be checked."""
+    main = curve_points(rows, scene, method)
+    return [r.psnr_other_db - TOLERANCE_DB for r in rows
+            if r.scene == scene and r.role == "peer" and r.ok and r.bytes and r.psnr_db and r.psnr_other_db
+            and (ours := curve.size_at(main, r.psnr_db)) is not None and ours < r.bytes]  # fmt: skip
 
 
 def _sweep(scene: _Scene, rows: list[BenchRow], settings: BenchSettings, say: Say) -> None:
@@ -184,7 +205,8 @@ def _sweep(scene: _Scene, rows: list[BenchRow], settings: BenchSettings, say: Sa
     targets = [r.psnr_db for r in rows if r.scene == scene.name and r.role == "peer" and r.ok and r.psnr_db]
     tried: list[float] = []
     for _ in range(settings.sweep):
-        floor = next_floor(rows, scene.name, targets, tried, settings.curve_method)
+        other = other_targets(rows, scene.name, settings.curve_method)
+        floor = next_floor(rows, scene.name, targets, tried, settings.curve_method, other)
         if floor is None:
             return
         tried.append(floor)

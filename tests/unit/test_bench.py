@@ -17,7 +17,7 @@ from service.cli.codec import HALF_PLY
 from symgs_core.bench import curve
 from symgs_core.bench.half_ply import EXTENSION, HalfPlyError, read_half_ply, write_half_ply
 from symgs_core.bench.rows import REQUIRED, SCHEMA, TOLERANCE_DB, BenchRow, claims
-from symgs_core.bench.run import OURS, BenchSettings, bench_scene, equal_fidelity, next_floor
+from symgs_core.bench.run import OURS, BenchSettings, bench_scene, equal_fidelity, next_floor, other_targets
 from symgs_core.config import CompressConfig, budget_for_floor
 from symgs_core.pipeline import compress, decompress
 from symgs_core.ply import save_scene
@@ -106,6 +106,24 @@ def test_the_sweep_aims_past_the_targets_the_curve_does_not_span() -> None:
     assert next_floor(rows, "s", [30.0], []) == pytest.approx(30.0 + 2.0 - 0.5)
 
 
+def test_the_sweep_aims_at_a_claimed_peers_psnr_on_the_other_rig() -> None:
+    """Our runs lose 3 dB on the other rig where the peer gains half a dB: the claim at 45 dB cannot be checked
+    until a run of ours reaches the peer's other-rig PSNR (less the tolerance) there, so the sweep aims at it, from
+    the offset of the run that landed nearest."""
+    rows = [ours(40.0, 37.0, floor=40.0), ours(50.0, 47.0, floor=50.0)]
+    claimed = peer(round(oracle(45.0) * 2), 45.0, 48.5)
+    beaten = peer(round(oracle(45.0) / 2), 45.0, 60.0)  # ours is larger here: no claim, nothing to check
+    rows += [claimed, beaten]
+    assert other_targets(rows, "s", OURS) == [pytest.approx(48.5 - TOLERANCE_DB)]
+    assert next_floor(rows, "s", [45.0], []) is None  # the evaluation rig alone is spanned
+    floor = next_floor(rows, "s", [45.0], [], other=other_targets(rows, "s", OURS))
+    assert floor == pytest.approx(48.5 - TOLERANCE_DB + 3.0 + 0.5)
+    rows.append(ours(52.0, 49.0, floor=floor))
+    assert next_floor(rows, "s", [45.0], [floor], other=other_targets(rows, "s", OURS)) is None
+    equal_fidelity(rows, "s")
+    assert claimed.claim_holds_other is True
+
+
 def test_half_ply_round_trip_and_refusals() -> None:
     scene = synthetic_scene("global", n=200, seed=4, sh_degree=2).scene
     data = write_half_ply(scene)
@@ -116,8 +134,11 @@ def test_half_ply_round_trip_and_refusals() -> None:
     import zstandard
 
     ply = zstandard.ZstdDecompressor().decompress(data)
-    for bad, match in [(b"not zstd", "zstd"), (zstandard.ZstdCompressor().compress(ply[:-2]), "need"),
-                       (zstandard.ZstdCompressor().compress(ply.replace(b"half x", b"half q")), "graphdeco")]:
+    for bad, match in [
+        (b"not zstd", "zstd"),
+        (zstandard.ZstdCompressor().compress(ply[:-2]), "need"),
+        (zstandard.ZstdCompressor().compress(ply.replace(b"half x", b"half q")), "graphdeco"),
+    ]:
         with pytest.raises(HalfPlyError, match=match):
             read_half_ply(bad)
 
@@ -150,8 +171,12 @@ def test_bench_writes_bench_json_files_and_charts(tmp_path: Path, monkeypatch: p
     assert decompress((out / mine.file).read_bytes()).means.shape == (mine.gaussians, 3)
     assert main(["decompress", str(out / half.file), "-o", str(tmp_path / "half.ply")]) == 0
     assert doc["cameras"]["evaluation"]["seed"] != doc["cameras"]["other"]["seed"]
-    for name, size in [("rate_distortion.png", (1000, 600)), ("speed_accuracy.png", (1000, 600)),
-                       ("rate_distortion_tiny.png", (900, 520)), ("speed_accuracy_tiny.png", (900, 520))]:
+    for name, size in [
+        ("rate_distortion.png", (1000, 600)),
+        ("speed_accuracy.png", (1000, 600)),
+        ("rate_distortion_tiny.png", (900, 520)),
+        ("speed_accuracy_tiny.png", (900, 520)),
+    ]:
         with Image.open(out / "charts" / name) as image:
             assert image.format == "PNG" and image.size == size, name
     tables = (out / "bench.md").read_text()
