@@ -164,6 +164,30 @@ def fault_stack(workers: int, lease_s: float) -> LocalStack:
     return LocalStack(env=env, durable_redis=True).start(workers=workers)
 
 
+def table(outcome: Outcome, args: argparse.Namespace) -> str:
+    """The outcome as a Markdown table, then each failed job's error (its code and message, as the API gives them)."""
+    s = outcome.summary()
+    failed = sum(s["failed"].values())
+    codes = ", ".join(f"`{code}` {n}" for code, n in sorted(s["failed"].items()))
+    runs = ", ".join(f"{k} run{'s' if k != 1 else ''}: {n}" for k, n in sorted(s["attempts"].items()))
+    faults = ", ".join(f"{kind} {n}" for kind, n in sorted(s["faults"].items()))
+    lines = [
+        "| jobs | succeeded | failed | lost (never finished) | distinct results | runs per job | submissions refused "
+        "(503) and retried | faults | wall |",
+        "|---:|---:|---:|---:|---:|---|---:|---|---:|",
+        f"| {s['jobs']} | {s['succeeded']} | {failed}{f' ({codes})' if codes else ''} | **{s['lost']}** | "
+        f"{s['distinct_results']} | {runs} | {s['submit_retries']} | {faults} | {s['seconds']:.0f} s |",
+        "",
+        f"{args.jobs} jobs, {args.workers} workers, a fault every {args.every:g} s, leases of {args.lease:g} s.",
+    ]
+    for job in outcome.states.values():
+        if job.get("state") == "failed":
+            error = job.get("error") or {}
+            lines.append(f"Job {job.get('id')} failed after {job.get('attempts')} run(s): {error.get('code')}: "
+                         f"{str(error.get('message'))[:300]}")  # fmt: skip
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=100)
@@ -183,7 +207,7 @@ def main() -> None:
     finally:
         stack.cleanup()
     summary = outcome.summary()
-    print(json.dumps(summary, indent=1))
+    print(table(outcome, args))
     if args.json is not None:
         args.json.write_text(json.dumps({**summary, "lost_ids": outcome.lost}, indent=1))
 
