@@ -177,10 +177,12 @@ def next_floor(
     if not missing:
         return None
     field, target = missing[0]
-    ours = [r for r in rows if r.scene == scene and r.method == method and r.ok]
+    # Only runs that held their floor say where a floor lands: a preset that fits nothing (fixed steps) does not.
+    ours = [r for r in rows if r.scene == scene and r.method == method and r.ok
+            and (r.preset not in PRESETS or PRESETS[r.preset].fitted)]  # fmt: skip
     landed = [(getattr(r, field), r.floor_db) for r in ours]
     landed = [(p, f) for p, f in landed if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
-    # The offset of the run that landed nearest the target: presets far from it land differently (fixed steps).
+    # The offset of the run that landed nearest the target: runs far from it, at other steps, land differently.
     offset = min(landed, key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
     offset_db = offset[0] - offset[1]
     front = curve.front(curve_points(rows, scene, method, field))

@@ -124,6 +124,17 @@ def test_the_sweep_aims_at_a_claimed_peers_psnr_on_the_other_rig() -> None:
     assert claimed.claim_holds_other is True
 
 
+def test_the_sweep_ignores_where_an_unfitted_preset_landed() -> None:
+    """``fast`` fits nothing: its PSNR lies 12.7 dB above its nominal floor (plant). Aiming from that offset would
+    land far short of the target; the fitted run's offset is the one to aim from."""
+    fast = BenchRow("s", OURS, "preset", "ok", "f.symgs", preset="fast", bytes=round(oracle(54.1)), psnr_db=54.1,
+                    psnr_other_db=54.6, floor_db=41.46)  # fmt: skip
+    high = BenchRow("s", OURS, "preset", "ok", "h.symgs", preset="high", bytes=round(oracle(49.2)), psnr_db=49.2,
+                    psnr_other_db=47.0, floor_db=46.3)  # fmt: skip
+    low = ours(38.2, 36.7, floor=35.9)
+    assert next_floor([low, high, fast], "s", [58.0], []) == pytest.approx(58.0 - (49.2 - 46.3) + 0.5)
+
+
 def test_half_ply_round_trip_and_refusals() -> None:
     scene = synthetic_scene("global", n=200, seed=4, sh_degree=2).scene
     data = write_half_ply(scene)
