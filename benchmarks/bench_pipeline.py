@@ -16,6 +16,8 @@ independent reconstruction): K training photographs and 8 test photographs are w
 under ``--work``, and both runs compress the upload with them: the fine-tune trains on photographs, decisions hold
 the input's own PSNR on the fitting photographs minus the budget, and the test photographs are reported.
 
+``--scenes PLY --images DIR``: a trained scene with the photographs it was trained from, one folder per scene.
+
 ``--captures DIR``: the same protocol on a real capture: a COLMAP folder of photographs with its structure-from-motion
 points. A scene is first trained on its training split (``symgs_core.bench.capture``; written to, and on later runs
 read from, ``--work``), then compressed with the capture's photographs; its test split (every 8th photograph) is
@@ -81,6 +83,8 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="*", default=[], type=Path)
+    parser.add_argument("--images", nargs="*", default=[], type=Path,
+                        help="each --scenes entry's posed photographs (NeRF-Synthetic or COLMAP folder), in order")
     parser.add_argument("--synthetic", nargs="*", default=[], help="global | nested | local | asymmetric")
     parser.add_argument("--capture", default="independent", choices=["twins", "independent"])
     parser.add_argument("--n", type=int, default=20000)
@@ -113,7 +117,9 @@ def main() -> None:
     else:
         jobs = [(label(k), synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture).scene,
                  None) for k in args.synthetic]  # fmt: skip
-    jobs += [(p.name, p, None) for p in args.scenes]
+    if args.images and len(args.images) != len(args.scenes):
+        parser.error(f"--images names {len(args.images)} folders for {len(args.scenes)} scenes")
+    jobs += [(p.name, p, images) for p, images in zip(args.scenes, args.images or [None] * len(args.scenes))]
     for folder in args.captures:
         ply = args.work / folder.name / f"trained-{args.train_rounds}x{args.train_iterations}.ply"
         jobs.append((f"{folder.name} (trained: {ply.name})", trained(folder, ply, args), folder))
