@@ -100,7 +100,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("bench-out/photos"),
                         help="where --photos writes them and --captures its trained scenes")
     parser.add_argument("--captures", nargs="*", default=[], type=Path, help="COLMAP folders with sparse points")
-    parser.add_argument("--train-rounds", type=int, default=6, help="rounds of training a capture's scene")
+    parser.add_argument("--train-rounds", type=int, default=4, help="rounds of training a capture's scene")
     parser.add_argument("--train-iterations", type=int, default=500, help="Adam steps per round")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()

@@ -100,7 +100,7 @@ def train_capture(
     folder: str | Path,
     *,
     resolution: int = 256,
-    rounds: int = 6,
+    rounds: int = 4,
     iterations: int = 500,
     growth: float = 0.25,
     sh_degree: int = 1,
