@@ -3,6 +3,7 @@
     python benchmarks/bench_pipeline.py --scenes ../shared/data/fox_cc0_mujoco_warp/fox.ply
     python benchmarks/bench_pipeline.py --synthetic global local --capture independent --n 20000
     python benchmarks/bench_pipeline.py --synthetic global asymmetric --photos 64 --work bench-out/photos
+    python benchmarks/bench_pipeline.py --captures ../shared/data/snowmiku_plush_capture_mit --work bench-out/captures
 
 Every setting is the preset's (``CompressConfig.for_preset``) unless given. PSNR is on the evaluation cameras, which
 fitted nothing: full frame and the object's own pixels. "gain" is the archive without mirrors over the archive with
@@ -14,6 +15,13 @@ symmetric truth, not against renders of the upload (a sample of the same object 
 independent reconstruction): K training photographs and 8 test photographs are written as a NeRF-Synthetic folder
 under ``--work``, and both runs compress the upload with them: the fine-tune trains on photographs, decisions hold
 the input's own PSNR on the fitting photographs minus the budget, and the test photographs are reported.
+
+``--scenes PLY --images DIR``: a trained scene with the photographs it was trained from, one folder per scene.
+
+``--captures DIR``: the same protocol on a real capture: a COLMAP folder of photographs with its structure-from-motion
+points. A scene is first trained on its training split (``symgs_core.bench.capture``; written to, and on later runs
+read from, ``--work``), then compressed with the capture's photographs; its test split (every 8th photograph) is
+reported and fitted nothing, neither the training nor the compression.
 """
 
 from __future__ import annotations
@@ -53,6 +61,21 @@ def _row(name: str, on, off, wall_on: float, wall_off: float) -> str:  # noqa: A
     )
 
 
+def trained(folder: Path, ply: Path, args: argparse.Namespace) -> Path:
+    """The scene trained on ``folder``'s training photographs, at ``ply``: trained once, then read from there."""
+    from symgs_core.bench.capture import train_capture
+    from symgs_core.ply import save_scene
+
+    if not ply.is_file():
+        t0 = time.perf_counter()
+        scene = train_capture(folder, rounds=args.train_rounds, iterations=args.train_iterations,
+                              say=lambda m: print(f"{folder.name}: {m}", flush=True))  # fmt: skip
+        ply.parent.mkdir(parents=True, exist_ok=True)
+        save_scene(scene, ply)
+        print(f"{folder.name}: trained {len(scene):,} Gaussians in {time.perf_counter() - t0:.0f} s\n", flush=True)
+    return ply
+
+
 def main() -> None:
     from symgs_core.config import PRESET_NAMES, CompressConfig
     from symgs_core.pipeline import compress
@@ -60,6 +83,8 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="*", default=[], type=Path)
+    parser.add_argument("--images", nargs="*", default=[], type=Path,
+                        help="each --scenes entry's posed photographs (NeRF-Synthetic or COLMAP folder), in order")
     parser.add_argument("--synthetic", nargs="*", default=[], help="global | nested | local | asymmetric")
     parser.add_argument("--capture", default="independent", choices=["twins", "independent"])
     parser.add_argument("--n", type=int, default=20000)
@@ -72,7 +97,11 @@ def main() -> None:
                         help="photograph a symmetric truth of each generated scene, this many training photographs, "
                              "and fit and score against them (0: renders of the input)")
     parser.add_argument("--photo-resolution", type=int, default=256)
-    parser.add_argument("--work", type=Path, default=Path("bench-out/photos"), help="where --photos writes them")
+    parser.add_argument("--work", type=Path, default=Path("bench-out/photos"),
+                        help="where --photos writes them and --captures its trained scenes")
+    parser.add_argument("--captures", nargs="*", default=[], type=Path, help="COLMAP folders with sparse points")
+    parser.add_argument("--train-rounds", type=int, default=4, help="rounds of training a capture's scene")
+    parser.add_argument("--train-iterations", type=int, default=500, help="Adam steps per round")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -88,7 +117,12 @@ def main() -> None:
     else:
         jobs = [(label(k), synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture).scene,
                  None) for k in args.synthetic]  # fmt: skip
-    jobs += [(p.name, p, None) for p in args.scenes]
+    if args.images and len(args.images) != len(args.scenes):
+        parser.error(f"--images names {len(args.images)} folders for {len(args.scenes)} scenes")
+    jobs += [(p.name, p, images) for p, images in zip(args.scenes, args.images or [None] * len(args.scenes))]
+    for folder in args.captures:
+        ply = args.work / folder.name / f"trained-{args.train_rounds}x{args.train_iterations}.ply"
+        jobs.append((f"{folder.name} (trained: {ply.name})", trained(folder, ply, args), folder))
     print(f"config: {config}\n")
     print("| scene | levels | input | stored | no mirrors B | mirrors B | gain | PSNR dB without (full / object) | "
           "PSNR dB with (full / object) | floor dB | levels tried, fitting PSNR before->after | s without | s with |")

@@ -1,0 +1,130 @@
+"""Are a scene's mirrored halves twins? What a quantised residual against the mirrored partner would cost.
+
+For each scene the first mirror is detected; each Gaussian of the half a mirror would drop is paired with the nearest
+reflection of a kept one (closest pairs first, each kept Gaussian used once). Two ways to store the paired Gaussians
+are then priced with the codec's own section coders, at the steps of scale 1 (``QuantSteps()``, rotations in their
+canonical frames, as the quantised archive holds them):
+
+    plain     what the plain codec spends on them: the sections of the whole scene less those of the scene without
+              them (positions as Morton gaps, so a dense set's positions cost what their neighbourhood leaves open)
+    residual  the differences between their symbols and their partners' reflected symbols, coded the same way; a
+              residual is exact at the codec's steps, so it costs no fidelity beyond the plain codec's own rounding
+
+A ratio residual / plain below 1 is what a residual would save; above 1 it would cost more than storing the Gaussians
+outright, and the halves carry no information about each other that the codec does not already use.
+
+    python benchmarks/bench_twins.py ../shared/data/fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply --synthetic
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+GROUPS = {"positions": ("means",), "shape": ("scales", "quats"), "opacity": ("opacities",),
+          "colour": ("sh_dc", "sh_rest")}  # fmt: skip
+
+
+def pairs(dropped: np.ndarray, mirrored: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into ``dropped`` [D, 3], into ``mirrored`` [K, 3]) of nearest pairs, closest first, each once."""
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(mirrored).query(dropped, k=1)
+    used = np.zeros(len(mirrored), dtype=bool)
+    mine, theirs = [], []
+    for i in np.argsort(distance, kind="stable"):
+        if not used[nearest[i]]:
+            used[nearest[i]] = True
+            mine.append(i)
+            theirs.append(nearest[i])
+    return np.array(mine, dtype=np.int64), np.array(theirs, dtype=np.int64)
+
+
+def symbols(scene, steps, extent: float) -> dict[str, np.ndarray]:  # noqa: ANN001 - GaussianScene, QuantSteps
+    """Each attribute [N, C] on the codec's grid (origin 0): what a residual subtracts."""
+    grid = lambda x, step: np.round(x.double().numpy().reshape(len(x), -1) / step).astype(np.int64)  # noqa: E731
+    out = {
+        "means": grid(scene.means, steps.position * extent),
+        "scales": grid(scene.scales, steps.scale),
+        "quats": grid(torch.nn.functional.normalize(scene.quats, dim=1)[:, 1:], steps.rotation),
+        "opacities": grid(torch.sigmoid(scene.opacities), steps.opacity),
+        "sh_dc": grid(scene.sh_dc, steps.dc),
+    }
+    if scene.sh_rest.shape[1]:
+        out["sh_rest"] = grid(scene.sh_rest, steps.sh[0])
+    return out
+
+
+def section_bytes(scene, codecs) -> dict[str, int]:  # noqa: ANN001 - GaussianScene, section codecs
+    return {k: len(codecs[k].encode(v.numpy()).payload) for k, v in scene.tensors().items()
+            if v.numel() or k != "sh_rest"}  # fmt: skip
+
+
+def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
+    from symgs_core.codec.entropy import encode_table
+    from symgs_core.codec.frames import canonical_frames
+    from symgs_core.codec.steps import QuantSteps
+    from symgs_core.detect import DetectConfig, detect
+    from symgs_core.mirror import reflect
+
+    found = detect(scene, DetectConfig(max_mirrors=1))
+    if not found:
+        return {"paired": 0}
+    mirror = found[0]
+    scene = canonical_frames(scene)
+    steps = QuantSteps()
+    extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
+    codecs = steps.codecs(extent)
+    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
+    kept, dropped = scene.select(mirror.left), scene.select(mirror.right)
+    mirrored = canonical_frames(reflect(kept, normal, mirror.plane.offset))
+    mine, theirs = pairs(dropped.means.numpy(), mirrored.means.numpy())
+    twins = mirror.right[torch.from_numpy(mine)]
+    rest = torch.ones(len(scene), dtype=torch.bool)
+    rest[twins] = False
+    whole, without = section_bytes(scene, codecs), section_bytes(scene.select(torch.nonzero(rest).flatten()), codecs)
+    own = symbols(dropped.select(torch.from_numpy(mine)), steps, extent)
+    partner = symbols(mirrored.select(torch.from_numpy(theirs)), steps, extent)
+    row = {"gaussians": len(scene), "paired": len(mine)}
+    for group, names in GROUPS.items():
+        names = [n for n in names if n in own]
+        row[group] = (sum(whole[n] - without[n] for n in names),
+                      sum(len(encode_table(own[n] - partner[n])) for n in names))  # fmt: skip
+    return row
+
+
+def main() -> None:
+    from symgs_core.ply import load_scene
+    from symgs_core.synthetic import synthetic_scene
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenes", nargs="*", type=Path)
+    parser.add_argument("--synthetic", action="store_true",
+                        help="also generated scenes: exact twins, twins with jitter, independent halves")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    jobs = [(p.name, lambda p=p: load_scene(p)) for p in args.scenes]
+    if args.synthetic:
+        for capture in ("twins", "independent"):
+            jobs.append((f"synthetic global ({capture}, n=50000)",
+                         lambda c=capture: synthetic_scene("global", n=50000, seed=0, sh_degree=1, capture=c).scene))
+    heads = " | ".join(f"{g} plain / residual B" for g in GROUPS)
+    print(f"| scene | Gaussians | dropped half, paired | {heads} | all: plain B | residual B | residual / plain |")
+    print("|---|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|")
+    for name, load in jobs:
+        row = measure(load())
+        if not row["paired"]:
+            print(f"| {name} | - | no mirror found |" + " |" * (len(GROUPS) + 3))
+            continue
+        plain, residual = (sum(row[g][i] for g in GROUPS) for i in (0, 1))
+        cells = " | ".join(f"{row[g][0]:,} / {row[g][1]:,}" for g in GROUPS)
+        print(f"| {name} | {row['gaussians']:,} | {row['paired']:,} | {cells} | {plain:,} | {residual:,} | "
+              f"{residual / plain:.3f} |", flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

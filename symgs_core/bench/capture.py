@@ -1,0 +1,131 @@
+"""A Gaussian scene trained from a posed photo capture, for benchmarks that need a real capture together with the
+photographs it was trained from (none of the trained scenes the project is tested on comes with them).
+
+The capture is a COLMAP folder with its structure-from-motion points (``sparse/0/points3D.ply``). Training follows
+3DGS in outline, at a benchmark's scale: one Gaussian per point (its colour, a size from the distance to its three
+nearest neighbours, opacity 0.1), then rounds of Adam with the 3DGS loss and learning rates (``optimize_level``) on
+the training split only; the test split (every 8th photograph) is never seen. Between rounds the set grows as in
+3DGS-MCMC: new Gaussians split off existing ones drawn in proportion to their opacity (both halves narrower, moved
+apart along the parent's longest axis), and nearly transparent ones are dropped. Each Gaussian is fitted to the
+photographs on its own, so mirrored halves of a symmetric object are independent reconstructions, as in any upload.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from ..datasets import colmap_model_dir, dataset_frames, load_dataset
+from ..pipeline.optimize import optimize_level
+from ..pipeline.state import LevelState
+from ..scene import GaussianScene
+from ..sh import C0
+from ..views import View
+
+START_OPACITY = 0.1
+DROP_OPACITY = 0.005  # below this a Gaussian is dropped between rounds
+Say = Callable[[str], None]
+
+
+def sfm_points(folder: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [P, 3] and colours [P, 3] in [0, 1] of a COLMAP folder's structure-from-motion points."""
+    model = colmap_model_dir(Path(folder))
+    if model is None or not (model / "points3D.ply").is_file():
+        raise FileNotFoundError(f"{folder}: no sparse/0/points3D.ply to start from")
+    vertex = PlyData.read(str(model / "points3D.ply"))["vertex"]
+    xyz = np.stack([vertex[a] for a in ("x", "y", "z")], axis=1).astype(np.float32)
+    rgb = np.stack([vertex[c] for c in ("red", "green", "blue")], axis=1).astype(np.float32) / 255.0
+    return xyz, rgb
+
+
+def initial_scene(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int) -> GaussianScene:
+    """One round Gaussian [P] per point, as wide as its mean distance to its three nearest neighbours."""
+    distance, _ = cKDTree(xyz).query(xyz, k=4)
+    width = np.maximum(distance[:, 1:].mean(axis=1), 1e-7)
+    n = len(xyz)
+    return GaussianScene(
+        means=torch.from_numpy(xyz),
+        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1),
+        scales=torch.from_numpy(np.log(width)).float()[:, None].repeat(1, 3),
+        opacities=torch.full((n,), math.log(START_OPACITY / (1.0 - START_OPACITY))),
+        sh_dc=(torch.from_numpy(rgb) - 0.5) / C0,
+        sh_rest=torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3),
+    )
+
+
+def grown(scene: GaussianScene, share: float, generator: torch.Generator) -> GaussianScene:
+    """``scene`` less its nearly transparent Gaussians, with ``share`` of its count split off Gaussians drawn in
+    proportion to opacity: the parent and its new half each 0.6 as wide, 0.5 standard deviations either side of
+    where it was along its longest axis, each with the opacity that keeps the pair's coverage."""
+    alpha = torch.sigmoid(scene.opacities)
+    scene = scene.select(torch.nonzero(alpha >= DROP_OPACITY).squeeze(1))
+    alpha = torch.sigmoid(scene.opacities)
+    count = int(share * len(scene))
+    if count == 0:
+        return scene
+    parents = torch.unique(torch.multinomial(alpha, count, replacement=True, generator=generator))
+    longest = scene.scales[parents].argmax(dim=1)
+    axis = _rotation(scene.quats[parents])[torch.arange(len(parents)), :, longest]  # world direction [k, 3]
+    shift = 0.5 * scene.scales[parents].exp().gather(1, longest[:, None]) * axis
+    a = alpha[parents]
+    half = (1.0 - torch.sqrt(1.0 - a)).clamp(1e-6, 1.0 - 1e-6)  # two halves cover what one did
+    tensors = scene.tensors()
+    out = {k: v.clone() for k, v in tensors.items()}
+    out["means"][parents] -= shift
+    out["scales"][parents] += math.log(0.6)
+    out["opacities"][parents] = torch.log(half / (1.0 - half))
+    children = {k: v[parents].clone() for k, v in out.items()}
+    children["means"] += 2 * shift
+    return GaussianScene(**{k: torch.cat([out[k], children[k]]) for k in out})
+
+
+def _rotation(quats: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] of quaternions (w, x, y, z) [N, 4]."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=1).unbind(1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=1).view(-1, 3, 3)  # fmt: skip
+
+
+def train_capture(
+    folder: str | Path,
+    *,
+    resolution: int = 256,
+    rounds: int = 4,
+    iterations: int = 500,
+    growth: float = 0.25,
+    sh_degree: int = 1,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
+    seed: int = 0,
+    say: Say | None = None,
+) -> GaussianScene:
+    """A scene fitted to the training photographs of the capture ``folder`` (their longest side brought to
+    ``resolution``): ``rounds`` rounds of ``iterations`` Adam steps, the set grown by ``growth`` between rounds.
+    ``points``: positions [P, 3] and colours [P, 3] to start from (default: the folder's ``sfm_points``)."""
+    say = say or (lambda message: None)
+    scene = initial_scene(*(points if points is not None else sfm_points(folder)), sh_degree)
+    first = dataset_frames(folder, "train")[0].camera
+    scale = min(1.0, resolution / max(first.width, first.height))
+    photos = [View(p.camera, p.image, torch.ones(p.image.shape[:2], dtype=torch.bool))
+              for p in load_dataset(folder, split="train", background=(0.0, 0.0, 0.0), scale=scale)]  # fmt: skip
+    centres = torch.stack([-(v.camera.R.T @ v.camera.t) for v in photos])
+    extent = 1.1 * float((centres - centres.mean(dim=0)).norm(dim=1).max())
+    background = torch.zeros(3)
+    generator = torch.Generator().manual_seed(seed)
+    for r in range(rounds):
+        if r:
+            scene = grown(scene, growth, generator)
+        state, _ = optimize_level(LevelState.plain(scene), photos, background, iterations=iterations, extent=extent,
+                                  seed=seed + r)  # fmt: skip
+        scene = state.stored
+        say(f"round {r + 1}/{rounds}: {len(scene):,} Gaussians")
+    return scene

@@ -1,0 +1,28 @@
+"""``benchmarks/bench_twins.py``: what a residual against the mirrored partner costs, on planted halves."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks.bench_twins import GROUPS, measure, pairs
+from symgs_core.synthetic import synthetic_scene
+
+
+def test_pairs_are_nearest_first_and_each_partner_used_once() -> None:
+    dropped = np.array([[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0]])
+    mirrored = np.array([[0.05, 0, 0], [5.2, 0, 0]])
+    mine, theirs = pairs(dropped, mirrored)
+    # 0 and 1 are equally near partner 0: the first keeps it; 1 has no partner left (5.2 is nearer to 2).
+    assert mine.tolist() == [0, 2] and theirs.tolist() == [0, 1]
+
+
+def total(row: dict, which: int) -> int:
+    return sum(row[g][which] for g in GROUPS)
+
+
+def test_residuals_of_twins_cost_a_fraction_of_the_gaussians_and_of_independent_halves_most_of_it() -> None:
+    twins = measure(synthetic_scene("global", n=3000, seed=2, sh_degree=1, capture="twins").scene)
+    independent = measure(synthetic_scene("global", n=3000, seed=2, sh_degree=1, capture="independent").scene)
+    assert twins["paired"] > 0.3 * twins["gaussians"] and independent["paired"] > 0.2 * independent["gaussians"]
+    assert total(twins, 1) < 0.1 * total(twins, 0)  # a twin's residual is all zeros (measured: 1.4%)
+    assert total(independent, 1) > 0.75 * total(independent, 0)  # little to predict from an independent half (88%)
