@@ -58,9 +58,10 @@ def symbols(scene, steps, extent: float) -> dict[str, np.ndarray]:  # noqa: ANN0
     return out
 
 
-def section_bytes(scene, codecs) -> dict[str, int]:  # noqa: ANN001 - GaussianScene, section codecs
-    return {k: len(codecs[k].encode(v.numpy()).payload) for k, v in scene.tensors().items()
-            if v.numel() or k != "sh_rest"}  # fmt: skip
+def section_bytes(scene, codecs, names) -> dict[str, int]:  # noqa: ANN001 - GaussianScene, section codecs
+    """Bytes of the sections ``names`` of ``scene`` as ``codecs`` write them."""
+    tensors = scene.tensors()
+    return {k: len(codecs[k].encode(tensors[k].numpy()).payload) for k in names}
 
 
 def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
@@ -69,6 +70,7 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     from symgs_core.codec.steps import QuantSteps
     from symgs_core.detect import DetectConfig, detect
     from symgs_core.mirror import reflect
+    from symgs_core.pipeline.budget import extent_of
 
     found = detect(scene, DetectConfig(max_mirrors=1))
     if not found:
@@ -76,7 +78,7 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     mirror = found[0]
     scene = canonical_frames(scene)
     steps = QuantSteps()
-    extent = float((scene.means.max(0).values - scene.means.min(0).values).max())
+    extent = extent_of(scene)
     codecs = steps.codecs(extent)
     normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
     kept, dropped = scene.select(mirror.left), scene.select(mirror.right)
@@ -85,12 +87,13 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     twins = mirror.right[torch.from_numpy(mine)]
     rest = torch.ones(len(scene), dtype=torch.bool)
     rest[twins] = False
-    whole, without = section_bytes(scene, codecs), section_bytes(scene.select(torch.nonzero(rest).flatten()), codecs)
     own = symbols(dropped.select(torch.from_numpy(mine)), steps, extent)
     partner = symbols(mirrored.select(torch.from_numpy(theirs)), steps, extent)
+    whole = section_bytes(scene, codecs, own)
+    without = section_bytes(scene.select(torch.nonzero(rest).flatten()), codecs, own)
     row = {"gaussians": len(scene), "paired": len(mine)}
     for group, names in GROUPS.items():
-        names = [n for n in names if n in own]
+        names = [n for n in names if n in own]  # SH degree 0: no higher bands
         row[group] = (sum(whole[n] - without[n] for n in names),
                       sum(len(encode_table(own[n] - partner[n])) for n in names))  # fmt: skip
     return row
@@ -103,7 +106,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", nargs="*", type=Path)
     parser.add_argument("--synthetic", action="store_true",
-                        help="also generated scenes: exact twins, twins with jitter, independent halves")
+                        help="also generated scenes: exact twins and independent halves")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -151,7 +151,7 @@ def dataset_views(
     from .datasets import load_dataset
 
     bg = tuple(float(v) for v in background)
-    scale, width = _photo_scale(folder, resolution)
+    scale, width = photo_scale(folder, resolution)
     photos = load_dataset(folder, split="train", background=bg, scale=scale)
     if len(photos) < 2:
         raise ValueError(f"{folder}: at least 2 training images are needed (one to train, one to fit)")
@@ -170,7 +170,7 @@ def dataset_views(
     return ViewSet(train_views, fit_views, eval_views, background, sets)
 
 
-def _photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
+def photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
     """The scale that brings the training photographs' longest side to ``resolution`` (never up), and that side."""
     from .datasets import dataset_frames
 
@@ -193,7 +193,7 @@ def dataset_eval_views(
     """The evaluation set of ``dataset_views`` alone (its test split), without loading the training photographs."""
     from .datasets import load_dataset
 
-    scale, _ = _photo_scale(folder, resolution)
+    scale, _ = photo_scale(folder, resolution)
     bg = tuple(float(v) for v in background)
     tests = load_dataset(folder, split="test", background=bg, max_views=eval, scale=scale)
     return [_photo_view(scene, p.camera, p.image, background) for p in tests]

@@ -20,14 +20,14 @@ import numpy as np
 import torch
 from plyfile import PlyData
 from scipy.spatial import cKDTree
-from torch import Tensor
 
-from ..datasets import colmap_model_dir, dataset_frames, load_dataset
+from ..datasets import colmap_model_dir, load_dataset
 from ..pipeline.optimize import optimize_level
 from ..pipeline.state import LevelState
+from ..render.projection import quat_to_rotmat
 from ..scene import GaussianScene
 from ..sh import C0
-from ..views import View
+from ..views import View, photo_scale
 
 START_OPACITY = 0.1
 DROP_OPACITY = 0.005  # below this a Gaussian is dropped between rounds
@@ -72,7 +72,7 @@ def grown(scene: GaussianScene, share: float, generator: torch.Generator) -> Gau
         return scene
     parents = torch.unique(torch.multinomial(alpha, count, replacement=True, generator=generator))
     longest = scene.scales[parents].argmax(dim=1)
-    axis = _rotation(scene.quats[parents])[torch.arange(len(parents)), :, longest]  # world direction [k, 3]
+    axis = quat_to_rotmat(scene.quats[parents])[torch.arange(len(parents)), :, longest]  # world direction [k, 3]
     shift = 0.5 * scene.scales[parents].exp().gather(1, longest[:, None]) * axis
     a = alpha[parents]
     half = (1.0 - torch.sqrt(1.0 - a)).clamp(1e-6, 1.0 - 1e-6)  # two halves cover what one did
@@ -84,16 +84,6 @@ def grown(scene: GaussianScene, share: float, generator: torch.Generator) -> Gau
     children = {k: v[parents].clone() for k, v in out.items()}
     children["means"] += 2 * shift
     return GaussianScene(**{k: torch.cat([out[k], children[k]]) for k in out})
-
-
-def _rotation(quats: Tensor) -> Tensor:
-    """Rotation matrices [N, 3, 3] of quaternions (w, x, y, z) [N, 4]."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=1).unbind(1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=1).view(-1, 3, 3)  # fmt: skip
 
 
 def train_capture(
@@ -113,11 +103,10 @@ def train_capture(
     ``points``: positions [P, 3] and colours [P, 3] to start from (default: the folder's ``sfm_points``)."""
     say = say or (lambda message: None)
     scene = initial_scene(*(points if points is not None else sfm_points(folder)), sh_degree)
-    first = dataset_frames(folder, "train")[0].camera
-    scale = min(1.0, resolution / max(first.width, first.height))
+    scale, _ = photo_scale(folder, resolution)
     photos = [View(p.camera, p.image, torch.ones(p.image.shape[:2], dtype=torch.bool))
               for p in load_dataset(folder, split="train", background=(0.0, 0.0, 0.0), scale=scale)]  # fmt: skip
-    centres = torch.stack([-(v.camera.R.T @ v.camera.t) for v in photos])
+    centres = torch.stack([v.camera.center for v in photos])
     extent = 1.1 * float((centres - centres.mean(dim=0)).norm(dim=1).max())
     background = torch.zeros(3)
     generator = torch.Generator().manual_seed(seed)

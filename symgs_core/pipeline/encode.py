@@ -183,8 +183,13 @@ def fit_codec(
 
 
 def rate_model(fitted: Fitted, floor: float) -> Callable[[float, float], float]:
-    """``size_ratio`` of ``fitted`` at ``floor`` as one function of (``psnr_from``, ``psnr_to``), each PSNR's bits
-    priced once: the level loop asks about every membership from the same state."""
+    """The size ratio of ``fitted``'s state coded to ``floor``, as a function of (``psnr_from``, ``psnr_to``):
+    predicted bytes were its own fitting PSNR ``psnr_to`` instead of ``psnr_from``, over its bytes at ``psnr_from``;
+    by the rate model it was fitted with, calibrated as it was. Each PSNR's bits are priced once: the level loop asks
+    about every membership from the same state.
+
+    What a change to the state costs in budget, it costs in bytes: the codec gets only the MSE the floor leaves.
+    ``inf`` where nothing is left."""
     rd, choice = fitted.rd, fitted.choice
     if rd is None or choice is None or fitted.allowed <= 0:
         raise ValueError("the state was not fitted with a rate model (float32 or fixed steps)")
@@ -204,15 +209,6 @@ def rate_model(fitted: Fitted, floor: float) -> Callable[[float, float], float]:
         return bits(psnr_to) / before if math.isfinite(before) and before > 0 else 1.0
 
     return ratio
-
-
-def size_ratio(fitted: Fitted, floor: float, psnr_from: float, psnr_to: float) -> float:
-    """Predicted bytes of ``fitted``'s state coded to ``floor`` were its own fitting PSNR ``psnr_to`` instead of
-    ``psnr_from``, over its bytes at ``psnr_from``; by the rate model it was fitted with, calibrated as it was.
-
-    What a change to the state costs in budget, it costs in bytes: the codec gets only the MSE the floor leaves.
-    ``inf`` where nothing is left."""
-    return rate_model(fitted, floor)(psnr_from, psnr_to)
 
 
 def fixed_codec(

@@ -13,7 +13,7 @@ from symgs_core.codec.steps import QuantSteps
 from symgs_core.config import floor_for_budget
 from symgs_core.metrics import psnr_to_mse
 from symgs_core.pipeline.budget import RUNGS, RateDistortion
-from symgs_core.pipeline.encode import canonical, fit_codec, size_ratio, write_archive
+from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
 from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
 from symgs_core.pipeline.state import LevelState
 from symgs_core.synthetic import synthetic_scene
@@ -115,10 +115,10 @@ def test_the_rate_model_prices_what_a_change_to_the_state_costs_in_budget(settin
     state, views, _ = setting
     fitted = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=QuantSteps(),
                        meta={}, name="balanced")  # fmt: skip
-    assert size_ratio(fitted, FLOOR, math.inf, math.inf) == pytest.approx(1.0)
-    ratios = [size_ratio(fitted, FLOOR, math.inf, FLOOR + d) for d in (6.0, 3.0, 1.0)]
+    assert rate_model(fitted, FLOOR)(math.inf, math.inf) == pytest.approx(1.0)
+    ratios = [rate_model(fitted, FLOOR)(math.inf, FLOOR + d) for d in (6.0, 3.0, 1.0)]
     assert 1.0 < ratios[0] < ratios[1] < ratios[2]
-    assert math.isinf(size_ratio(fitted, FLOOR, math.inf, FLOOR))
+    assert math.isinf(rate_model(fitted, FLOOR)(math.inf, FLOOR))
     gen = torch.Generator().manual_seed(1)
     noisy = state.stored.with_(sh_dc=state.stored.sh_dc + 0.05 * torch.randn(state.stored.sh_dc.shape, generator=gen))
     degraded = LevelState(noisy, state.normals, state.offsets, state.bits)
@@ -128,4 +128,4 @@ def test_the_rate_model_prices_what_a_change_to_the_state_costs_in_budget(settin
                       meta={}, name="balanced")  # fmt: skip
     measured = len(refit.archive) / len(fitted.archive)
     assert measured > 1.0
-    assert size_ratio(fitted, FLOOR, math.inf, psnr) == pytest.approx(measured, rel=0.3)
+    assert rate_model(fitted, FLOOR)(math.inf, psnr) == pytest.approx(measured, rel=0.3)

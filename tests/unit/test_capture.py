@@ -12,6 +12,7 @@ import torch
 from symgs_core.bench import capture
 from symgs_core.bench.capture import DROP_OPACITY, grown, initial_scene, train_capture
 from symgs_core.bench.photos import photographed
+from symgs_core.sh import C0
 from symgs_core.views import dataset_eval_views, evaluate
 
 
@@ -40,7 +41,7 @@ def test_a_capture_trains_toward_its_photographs_and_never_sees_the_test_split(
     g = torch.Generator().manual_seed(1)
     start = truth.select(torch.randperm(len(truth), generator=g)[:150])
     points = ((start.means + 0.01 * torch.randn(start.means.shape, generator=g)).numpy(),
-              (0.28209479 * start.sh_dc + 0.5).clamp(0, 1).numpy())  # fmt: skip
+              (C0 * start.sh_dc + 0.5).clamp(0, 1).numpy())  # fmt: skip
     background = torch.zeros(3)
     tests = dataset_eval_views(tmp_path, truth, eval=4, resolution=48, background=background)
     before = evaluate(initial_scene(*points, sh_degree=1), tests, background, with_ssim=False).psnr
