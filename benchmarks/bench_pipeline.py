@@ -19,9 +19,9 @@ the input's own PSNR on the fitting photographs minus the budget, and the test p
 ``--scenes PLY --images DIR``: a trained scene with the photographs it was trained from, one folder per scene.
 
 ``--captures DIR``: the same protocol on a real capture: a COLMAP folder of photographs with its structure-from-motion
-points. A scene is first trained on its training split (``symgs_core.bench.capture``; written to, and on later runs
-read from, ``--work``), then compressed with the capture's photographs; its test split (every 8th photograph) is
-reported and fitted nothing, neither the training nor the compression.
+points, or a NeRF-Synthetic folder (started from random points). A scene is first trained on its training split
+(``symgs_core.bench.capture``; written to, and on later runs read from, ``--work``), then compressed with the
+capture's photographs; its test split is reported and fitted nothing, neither the training nor the compression.
 """
 
 from __future__ import annotations
@@ -99,9 +99,10 @@ def main() -> None:
     parser.add_argument("--photo-resolution", type=int, default=256)
     parser.add_argument("--work", type=Path, default=Path("bench-out/photos"),
                         help="where --photos writes them and --captures its trained scenes")
-    parser.add_argument("--captures", nargs="*", default=[], type=Path, help="COLMAP folders with sparse points")
-    parser.add_argument("--train-rounds", type=int, default=4, help="rounds of training a capture's scene")
-    parser.add_argument("--train-iterations", type=int, default=500, help="Adam steps per round")
+    parser.add_argument("--captures", nargs="*", default=[], type=Path,
+                        help="COLMAP (with sparse points) or NeRF-Synthetic folders")
+    parser.add_argument("--train-rounds", type=int, default=5, help="rounds of training a capture's scene")
+    parser.add_argument("--train-iterations", type=int, default=600, help="Adam steps per round")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

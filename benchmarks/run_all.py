@@ -49,6 +49,7 @@ FOX = "fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply"
 PLANT = "padilla_captures_cc_by/plant_113k_sh0.ply"
 TAROT = "padilla_captures_cc_by/academic_tarot_cards_115k_sh0.ply"
 SNOWMIKU = "snowmiku_plush_capture_mit"  # photographs and a COLMAP model, no trained scene
+LEGO = "nerf_synthetic_lego_400px"  # NeRF-Synthetic photographs, no points, no trained scene
 REAL = (KACYTRAN, PLAYBOT_31K, DONUT, FOX, PLANT, TAROT, PLAYBOT_125K)  # smallest first
 
 # The settings of every run of ours in the codec bench: the presets' own camera sets (8 fitting, 8 evaluation at
@@ -115,7 +116,8 @@ BENCHES: tuple[Bench, ...] = (
           scenes=REAL, env=PASSIVE, estimate="about 2 hours"),
     Bench("twins", ("benchmarks/bench_twins.py", "{scenes}", "--synthetic"), None, ("twins",), scenes=REAL,
           env=PASSIVE),
-    Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + SNOWMIKU, "--work", "{out}"),
+    Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
+                               "--work", "{out}"),
           None, ("pipeline-capture",), data=True, env=PASSIVE, estimate="about 40 minutes"),
     Bench("codec", ("-m", "service.cli.parser", "bench", "{scenes}", "--out", "{out}", *CODEC, "--max-levels", "2"),
           ("-m", "service.cli.parser", "bench", "{scenes}", "--out", "{out}", "--presets", "balanced", "--sweep", "2",

@@ -10,8 +10,10 @@ import pytest
 import torch
 
 from symgs_core.bench import capture
-from symgs_core.bench.capture import DROP_OPACITY, grown, initial_scene, train_capture
+from symgs_core.bench.capture import DROP_OPACITY, grown, initial_scene, orbit_points, train_capture
 from symgs_core.bench.photos import photographed
+from symgs_core.cameras import Camera
+from symgs_core.datasets import DatasetError
 from symgs_core.sh import C0
 from symgs_core.views import dataset_eval_views, evaluate
 
@@ -56,6 +58,27 @@ def test_a_capture_trains_toward_its_photographs_and_never_sees_the_test_split(
     assert math.isfinite(after) and after > before + 2.5  # measured: 14.7 -> 18.0 dB
 
 
-def test_a_capture_without_points_is_refused(tmp_path: Path) -> None:
-    with pytest.raises(FileNotFoundError, match="points3D"):
+def test_the_transparent_are_relocated_not_lost() -> None:
+    xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]], dtype=np.float32)
+    scene = initial_scene(xyz, np.full((3, 3), 0.5, dtype=np.float32), sh_degree=1)
+    alpha = torch.tensor([DROP_OPACITY / 2, 0.9, 0.5])
+    out = grown(scene.with_(opacities=torch.log(alpha / (1 - alpha))), share=0.0, generator=torch.Generator())
+    assert len(out) == 3  # no growth asked: the transparent one is gone, and one opaque one split in its stead
+    assert not (out.means == torch.from_numpy(xyz[0])).all(dim=1).any()
+
+
+def test_a_capture_without_points_starts_in_the_cube_its_cameras_look_at() -> None:
+    target = torch.tensor([1.0, -2.0, 0.5])
+    g = torch.Generator().manual_seed(0)
+    directions = torch.nn.functional.normalize(torch.randn(12, 3, generator=g), dim=1)
+    cameras = [Camera.look_at(target + 4.0 * d, target, up=(0.3, 0.2, 1.0)) for d in directions]
+    xyz, rgb = orbit_points(cameras, 5000, seed=0)
+    assert xyz.shape == (5000, 3) and rgb.shape == (5000, 3) and 0 <= rgb.min() and rgb.max() <= 1
+    # NeRF-Synthetic's proportion: a cube of half side 4/3 around the point every optical axis passes through.
+    assert np.allclose(xyz.min(0), target.numpy() - 4 / 3, atol=0.01)
+    assert np.allclose(xyz.max(0), target.numpy() + 4 / 3, atol=0.01)
+
+
+def test_a_folder_without_photographs_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="neither a NeRF-Synthetic dataset"):
         train_capture(tmp_path)
