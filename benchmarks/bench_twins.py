@@ -13,6 +13,11 @@ canonical frames, as the quantised archive holds them):
 A ratio residual / plain below 1 is what a residual would save; above 1 it would cost more than storing the Gaussians
 outright, and the halves carry no information about each other that the codec does not already use.
 
+What a mirror without residuals does instead is replace the paired Gaussians by their partners' reflections. The
+last columns render that, before any fine-tune, on the default fitting cameras against the input's own renders (the
+reference when a scene comes without photographs), beside the same Gaussians simply left out: where the replaced
+scene scores no better than the one without them, the reflections carry nothing of the Gaussians they replace.
+
     python benchmarks/bench_twins.py ../shared/data/fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply --synthetic
 """
 
@@ -64,6 +69,18 @@ def section_bytes(scene, codecs, names) -> dict[str, int]:  # noqa: ANN001 - Gau
     return {k: len(codecs[k].encode(tensors[k].numpy()).payload) for k in names}
 
 
+def fitting_psnr(scene, scenes: list) -> list[float]:  # noqa: ANN001 - GaussianScene
+    """PSNR (dB, the worse of full frame and object pixels) of each of ``scenes`` on the default fitting cameras,
+    against renders of ``scene``."""
+    from symgs_core.config import CompressConfig
+    from symgs_core.views import evaluate, self_supervised_views
+
+    config, background = CompressConfig.for_preset(), torch.zeros(3)
+    views = self_supervised_views(scene, train=0, fit=config.fit_views, eval=0, resolution=config.resolution,
+                                  eval_resolution=config.eval_resolution, background=background, seed=config.seed)
+    return [evaluate(s, views.fit, background, with_ssim=False).worst for s in scenes]
+
+
 def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     from symgs_core.codec.entropy import encode_table
     from symgs_core.codec.frames import canonical_frames
@@ -71,6 +88,7 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     from symgs_core.detect import DetectConfig, detect
     from symgs_core.mirror import reflect
     from symgs_core.pipeline.budget import extent_of
+    from symgs_core.scene import GaussianScene
 
     found = detect(scene, DetectConfig(max_mirrors=1))
     if not found:
@@ -92,6 +110,9 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     whole = section_bytes(scene, codecs, own)
     without = section_bytes(scene.select(torch.nonzero(rest).flatten()), codecs, own)
     row = {"gaussians": len(scene), "paired": len(mine)}
+    others = scene.select(torch.nonzero(rest).flatten())
+    replaced = GaussianScene.cat([others, mirrored.select(torch.from_numpy(theirs))])
+    row["psnr"] = fitting_psnr(scene, [replaced, others])
     for group, names in GROUPS.items():
         names = [n for n in names if n in own]  # SH degree 0: no higher bands
         row[group] = (sum(whole[n] - without[n] for n in names),
@@ -116,17 +137,18 @@ def main() -> None:
             jobs.append((f"synthetic global ({capture}, n=50000)",
                          lambda c=capture: synthetic_scene("global", n=50000, seed=0, sh_degree=1, capture=c).scene))
     heads = " | ".join(f"{g} plain / residual B" for g in GROUPS)
-    print(f"| scene | Gaussians | dropped half, paired | {heads} | all: plain B | residual B | residual / plain |")
-    print("|---|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|")
+    print(f"| scene | Gaussians | dropped half, paired | {heads} | all: plain B | residual B | residual / plain | "
+          "fitting PSNR dB, paired replaced by reflections / left out |")
+    print("|---|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|---:|")
     for name, load in jobs:
         row = measure(load())
         if not row["paired"]:
-            print(f"| {name} | - | no mirror found |" + " |" * (len(GROUPS) + 3))
+            print(f"| {name} | - | no mirror found |" + " |" * (len(GROUPS) + 4))
             continue
         plain, residual = (sum(row[g][i] for g in GROUPS) for i in (0, 1))
         cells = " | ".join(f"{row[g][0]:,} / {row[g][1]:,}" for g in GROUPS)
         print(f"| {name} | {row['gaussians']:,} | {row['paired']:,} | {cells} | {plain:,} | {residual:,} | "
-              f"{residual / plain:.3f} |", flush=True)  # fmt: skip
+              f"{residual / plain:.3f} | {row['psnr'][0]:.2f} / {row['psnr'][1]:.2f} |", flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":
