@@ -77,6 +77,7 @@ def trained(folder: Path, ply: Path, args: argparse.Namespace) -> Path:
 
 
 def main() -> None:
+    from symgs_core.bench.capture import ITERATIONS, ROUNDS
     from symgs_core.config import PRESET_NAMES, CompressConfig
     from symgs_core.pipeline import compress
     from symgs_core.synthetic import synthetic_scene
@@ -101,8 +102,8 @@ def main() -> None:
                         help="where --photos writes them and --captures its trained scenes")
     parser.add_argument("--captures", nargs="*", default=[], type=Path,
                         help="COLMAP (with sparse points) or NeRF-Synthetic folders")
-    parser.add_argument("--train-rounds", type=int, default=5, help="rounds of training a capture's scene")
-    parser.add_argument("--train-iterations", type=int, default=600, help="Adam steps per round")
+    parser.add_argument("--train-rounds", type=int, default=ROUNDS, help="rounds of training a capture's scene")
+    parser.add_argument("--train-iterations", type=int, default=ITERATIONS, help="Adam steps per round")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -107,10 +107,10 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     rest[twins] = False
     own = symbols(dropped.select(torch.from_numpy(mine)), steps, extent)
     partner = symbols(mirrored.select(torch.from_numpy(theirs)), steps, extent)
-    whole = section_bytes(scene, codecs, own)
-    without = section_bytes(scene.select(torch.nonzero(rest).flatten()), codecs, own)
-    row = {"gaussians": len(scene), "paired": len(mine)}
     others = scene.select(torch.nonzero(rest).flatten())
+    whole = section_bytes(scene, codecs, own)
+    without = section_bytes(others, codecs, own)
+    row = {"gaussians": len(scene), "paired": len(mine)}
     replaced = GaussianScene.cat([others, mirrored.select(torch.from_numpy(theirs))])
     row["psnr"] = fitting_psnr(scene, [replaced, others])
     for group, names in GROUPS.items():

@@ -33,7 +33,9 @@ from ..sh import C0
 from ..views import View, photo_scale
 
 START_OPACITY = 0.1
-DROP_OPACITY = 0.005  # below this a Gaussian is dropped between rounds
+DROP_OPACITY = 0.005  # below this a Gaussian is relocated between rounds
+# The benchmarks' training (``bench_pipeline --captures``): 3,000 Adam steps in all, the set grown by half each round.
+ROUNDS, ITERATIONS = 5, 600
 Say = Callable[[str], None]
 
 
@@ -111,8 +113,8 @@ def train_capture(
     folder: str | Path,
     *,
     resolution: int = 256,
-    rounds: int = 4,
-    iterations: int = 500,
+    rounds: int = ROUNDS,
+    iterations: int = ITERATIONS,
     growth: float = 0.5,
     sh_degree: int = 1,
     points: tuple[np.ndarray, np.ndarray] | None = None,
