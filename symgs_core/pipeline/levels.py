@@ -42,6 +42,10 @@ MAX_ATTEMPTS = 2
 MIN_GAIN_DB = 0.05
 # Neighbours within this many local spacings of a mirror's two sides move with them in its fine-tune.
 HALO_SPACINGS = 3.0
+# A membership that, as it starts, costs the codec less than this share of its bytes (by the rate model) is judged
+# without a fine-tune: bringing it all the way back could save no more, and on near-exact twins a fine-tune only burns
+# minutes before it is rolled back.
+SETTLED_COST = 0.005
 
 
 @dataclass(frozen=True)
@@ -138,11 +142,13 @@ Rate = Callable[[float, float], float]  # (state's fitting PSNR, a candidate's) 
 @dataclass(frozen=True)
 class Attempt:
     """A membership to try: its PSNR before the fine-tune and, with a rate model, the bytes its archive is
-    predicted at should the fine-tune gain ``TUNE_GAIN`` dB (None: no model)."""
+    predicted at should the fine-tune gain ``TUNE_GAIN`` dB (None: no model), and whether it is ``settled``: it costs
+    the codec so little as it starts (``SETTLED_COST``) that no fine-tune could pay for its minutes."""
 
     membership: Membership
     psnr_before: float
     predicted: float | None
+    settled: bool = False
 
     def pays(self, floor: float, best_bytes: int) -> bool:
         if self.predicted is not None:
@@ -158,7 +164,7 @@ def plan_attempts(
     archive first (without a rate model, the loosest).
 
     A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set). One that
-    cannot pay is listed but not fine-tuned: with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
+    cannot pay is listed but not fine-tuned (nor is one already ``settled``, which is judged as it starts): with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
     starts at would leave the codec too little of the budget to make the archive smaller than ``best_bytes`` (a
     mirror spends the same error the quantiser needs); without, when it starts more than ``TUNE_GAIN`` dB below the
     floor. A fine-tune costs minutes on a large scene, and the rate model a few encodes.
@@ -168,11 +174,12 @@ def plan_attempts(
     for m in worth:
         candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
         before = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
-        predicted = None
+        predicted, settled = None, False
         if rate is not None:
             share = len(candidate.stored) / max(len(state.stored), 1)
             predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
-        attempts.append(Attempt(m, before, predicted))
+            settled = rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
+        attempts.append(Attempt(m, before, predicted, settled))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
         if a.predicted is None:
@@ -325,7 +332,7 @@ def run_levels(
             t0 = time.perf_counter()
             candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
             skipped = not attempt.pays(floor, best_bytes)
-            if skipped:
+            if skipped or attempt.settled:
                 tuned, psnr_after, run = candidate.detach(), psnr_before, 0
             else:
                 tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
