@@ -164,10 +164,11 @@ def plan_attempts(
     archive first (without a rate model, the loosest).
 
     A membership must drop enough Gaussians to pay for a level (``MIN_SAVING`` of the working set). One that
-    cannot pay is listed but not fine-tuned (nor is one already ``settled``, which is judged as it starts): with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
+    cannot pay is listed but not fine-tuned: with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
     starts at would leave the codec too little of the budget to make the archive smaller than ``best_bytes`` (a
     mirror spends the same error the quantiser needs); without, when it starts more than ``TUNE_GAIN`` dB below the
-    floor. A fine-tune costs minutes on a large scene, and the rate model a few encodes.
+    floor. Nor is one already ``settled``: it is judged as it starts. A fine-tune costs minutes on a large scene, and
+    the rate model a few encodes.
     """
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
     attempts = []
