@@ -353,6 +353,8 @@ def run_levels(
                 reason = (f"the archive shrinks from {best_bytes:,} to {archive_bytes:,} bytes" if accepted_now else
                           f"within the floor, but the archive ({archive_bytes:,} bytes) is not smaller than without "
                           f"this level ({best_bytes:,} bytes)")  # fmt: skip
+            if attempt.settled and not skipped:
+                reason += f"; not fine-tuned: as it starts it costs the codec under {SETTLED_COST:.1%} of its bytes"
             records.append(LevelReport(
                 level=level, normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]),
                                      float(tuned.normals[-1, 2])),
