@@ -42,9 +42,10 @@ MAX_ATTEMPTS = 2
 MIN_GAIN_DB = 0.05
 # Neighbours within this many local spacings of a mirror's two sides move with them in its fine-tune.
 HALO_SPACINGS = 3.0
-# A membership that, as it starts, costs the codec less than this share of its bytes (by the rate model) is judged
-# without a fine-tune: bringing it all the way back could save no more, and on near-exact twins a fine-tune only burns
-# minutes before it is rolled back.
+# Against renders of the input, a membership that, as it starts, costs the codec less than this share of its bytes (by
+# the rate model) is judged without a fine-tune: bringing it all the way back could save no more, and on near-exact
+# twins a fine-tune only burns minutes before it is rolled back. Against photographs a fine-tune may gain beyond the
+# input itself, so there every membership that may pay is fine-tuned.
 SETTLED_COST = 0.005
 
 
@@ -158,7 +159,7 @@ class Attempt:
 
 def plan_attempts(
     state: LevelState, psnr: float, options: list[Membership], views: ViewSet, *, floor: float, rate: Rate | None,
-    best_bytes: int,
+    best_bytes: int, photographs: bool = False,
 ) -> list[Attempt]:
     """The memberships to consider (at most ``MAX_ATTEMPTS``), those that may pay first, the smallest predicted
     archive first (without a rate model, the loosest).
@@ -167,8 +168,8 @@ def plan_attempts(
     cannot pay is listed but not fine-tuned: with a rate model (``rate``), when even ``TUNE_GAIN`` dB more than it
     starts at would leave the codec too little of the budget to make the archive smaller than ``best_bytes`` (a
     mirror spends the same error the quantiser needs); without, when it starts more than ``TUNE_GAIN`` dB below the
-    floor. Nor is one already ``settled``: it is judged as it starts. A fine-tune costs minutes on a large scene, and
-    the rate model a few encodes.
+    floor. Nor is one already ``settled`` (``SETTLED_COST``; never against ``photographs``): it is judged as it
+    starts. A fine-tune costs minutes on a large scene, and the rate model a few encodes.
     """
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
     attempts = []
@@ -179,7 +180,7 @@ def plan_attempts(
         if rate is not None:
             share = len(candidate.stored) / max(len(state.stored), 1)
             predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
-            settled = rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
+            settled = not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
         attempts.append(Attempt(m, before, predicted, settled))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
@@ -305,6 +306,7 @@ def run_levels(
     pay (``plan_attempts``); resume from ``checkpoint`` when its ``fingerprint`` (the job's inputs) matches. Returns
     the state, its fitting PSNR and a record of every level tried.
 
+    ``reference``: the input's own fitting PSNR, +inf against renders of it, finite against photographs.
     ``steps``: the plain codec's steps, which the fine-tunes round to (straight-through) so that what they learn
     survives the codec (None: float32).
     """
@@ -326,7 +328,8 @@ def run_levels(
         mirrors = detect(state.stored, detect_config, exclude=accepted)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
-        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=rate, best_bytes=best_bytes)
+        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=rate, best_bytes=best_bytes,
+                                 photographs=math.isfinite(reference))  # fmt: skip
         done = True
         for attempt in attempts:
             membership, psnr_before = attempt.membership, attempt.psnr_before
