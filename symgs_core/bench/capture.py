@@ -88,8 +88,7 @@ def grown(scene: GaussianScene, share: float, generator: torch.Generator) -> Gau
     splits are drawn (a start from random points loses most of them in its first round)."""
     alpha = torch.sigmoid(scene.opacities)
     live = alpha >= DROP_OPACITY
-    scene = scene.select(torch.nonzero(live).squeeze(1))
-    alpha = torch.sigmoid(scene.opacities)
+    scene, alpha = scene.select(torch.nonzero(live).squeeze(1)), alpha[live]
     count = int(share * len(scene)) + int((~live).sum())
     if count == 0:
         return scene
