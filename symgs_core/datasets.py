@@ -70,7 +70,8 @@ class DatasetError(ValueError):
     """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
 
     Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, malformed,
-    unknown_camera_model, distorted_camera, camera_missing, empty.
+    unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
+    (``views.check_photographs``).
     """
 
     def __init__(self, code: str, message: str) -> None:

@@ -170,6 +170,40 @@ def dataset_views(
     return ViewSet(train_views, fit_views, eval_views, background, sets)
 
 
+def flat_colour_psnr(views: Sequence[View]) -> float:
+    """PSNR, over the object's pixels of ``views``, of the best flat colour per view (its mean there); NaN where
+    no view has any."""
+    error, pixels = 0.0, 0
+    for _, target, mask in views:
+        if mask.any():
+            drawn = target[mask]
+            error += float(((drawn - drawn.mean(dim=0)) ** 2).mean(dim=-1).sum())
+            pixels += int(mask.sum())
+    return mse_to_psnr(error / pixels) if pixels else math.nan
+
+
+def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:
+    """Refuse photographs that do not show the upload: where it renders opaque in ``views`` (the fitting set, on
+    which the upload scores ``fitting``), it must match them better than a flat colour does (``flat_colour_psnr``).
+
+    A trained scene beats the flat colour by about ten dB; the photographs of another scene, or poses in another
+    frame than the scene's, fall below it (BENCHMARKS, "Photographs that do not show the upload"). Against such
+    photographs every decision would chase noise: the floor sits at a few dB and any mirror passes it.
+    """
+    from .datasets import DatasetError
+
+    flat = flat_colour_psnr(views)
+    if math.isnan(flat):
+        raise DatasetError("images_mismatch", "the upload draws nothing in the photographs' views: they do not show "
+                           "this scene, or their poses are not in its frame")  # fmt: skip
+    if not fitting.psnr_object > flat:
+        raise DatasetError(
+            "images_mismatch",
+            f"where the upload is drawn, it matches the photographs at {fitting.psnr_object:.1f} dB, no better than "
+            f"a flat colour does ({flat:.1f} dB): they do not show this scene, or their poses are not in its frame",
+        )
+
+
 def photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
     """The scale that brings the training photographs' longest side to ``resolution`` (never up), and that side."""
     from .datasets import dataset_frames

@@ -82,7 +82,8 @@ def _compress(args: argparse.Namespace) -> int:
         try:
             result = compress(args.scene, images=args.images, config=config, progress=progress)
         except ValueError as exc:  # PlyError, DatasetError and bad settings all say what is wrong
-            raise CliError(str(exc)) from exc
+            code = getattr(exc, "code", None)  # the word a service client would be told
+            raise CliError(f"{code}: {exc}" if code else str(exc)) from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_bytes(result.archive)
     if args.report is not None:

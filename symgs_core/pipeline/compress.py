@@ -18,7 +18,7 @@ from ..config import PRESETS, CompressConfig
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
-from ..views import dataset_views, evaluate, self_supervised_views
+from ..views import check_photographs, dataset_views, evaluate, self_supervised_views
 from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, rate_model, stages
 from .levels import run_levels
 from .state import LevelState
@@ -125,7 +125,9 @@ def compress(
     if images is not None:
         views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
                               resolution=config.eval_resolution, background=background)  # fmt: skip
-        reference = evaluate(source, views.fit, background, with_ssim=False).worst
+        own = evaluate(source, views.fit, background, with_ssim=False)
+        check_photographs(own, views.fit)
+        reference = own.worst
         floor = reference - config.budget
     else:
         views = self_supervised_views(

@@ -65,3 +65,19 @@ def test_a_reused_idempotency_key_with_another_request_is_refused(api_a: httpx.C
     for other in (post({**params, "iterations": 4000}), post(params, small_ply[:-4] + b"\0\0\0\0")):
         assert other.status_code == 422 and other.json()["error"]["code"] == "idempotency_key_reused", other.text
     assert api_a.post(f"/v1/jobs/{first.json()['id']}:cancel").status_code in (200, 202)
+
+
+def test_photographs_of_another_scene_fail_as_images_mismatch(
+    api_a: httpx.Client, scene_path, stack, tmp_path  # noqa: ANN001
+) -> None:
+    """The worker renders the upload against its photographs before any work: photographs of another scene are
+    named by their code at the client, over HTTP and in the command line."""
+    from symgs_core.bench.photos import photographed
+
+    photographed("local", tmp_path / "shots", n=600, photos=6, tests=2, resolution=32)
+    run = symgs(stack, "submit", str(scene_path), "--images", str(tmp_path / "shots"), "--params", json.dumps(TINY))
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert f"{scene_path.name}: failed: images_mismatch: " in run.stdout, run.stdout
+    failed = api_a.get("/v1/jobs", params={"state": "failed"}).json()
+    codes = {job["error"]["code"] for job in failed["items"]}
+    assert "images_mismatch" in codes, failed

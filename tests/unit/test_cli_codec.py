@@ -8,6 +8,7 @@ import re
 import pytest
 
 from service.cli import main
+from symgs_core.bench.photos import photographed
 from symgs_core.export.formats import EXPORTS
 from symgs_core.ply import load_scene, save_scene
 from symgs_core.synthetic import synthetic_scene
@@ -63,6 +64,10 @@ def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
     assert main(["compress", str(not_ply), "-o", str(tmp_path / "n.symgs"), *FAST, "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
+    photographed("local", tmp_path / "shots", n=300, photos=4, tests=1, resolution=24)
+    elsewhere = ["compress", str(scene_file), "--images", str(tmp_path / "shots"), "-o", str(tmp_path / "e.symgs")]
+    assert main([*elsewhere, *FAST, "--quiet"]) == 2
+    assert "symgs compress: error: images_mismatch: " in capsys.readouterr().err  # the code a service client sees
 
 
 def _bad_archives(scene_file) -> dict[str, bytes]:  # noqa: ANN001

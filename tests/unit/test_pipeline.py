@@ -296,3 +296,28 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     assert mirrored.accepted_levels and mirrored.fitting.worst >= mirrored.psnr_floor
     assert mirrored.output_bytes < 0.8 * plain.output_bytes
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
+
+
+
+@pytest.mark.parametrize("upload", ["another scene", "turned a quarter", "out of view"])
+def test_photographs_that_do_not_show_the_upload_are_refused_before_any_work(tmp_path, upload):
+    """Against the photographs of another scene, or with poses in another frame, every decision would chase noise
+    (the floor falls to a few dB and any mirror passes it): the job is refused, by its code, before any work."""
+    from symgs_core.datasets import DatasetError
+
+    shown = photographed("global", tmp_path, n=800, photos=8, tests=2, resolution=48)
+    centre = shown.means.mean(dim=0)
+    quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    uploads = {
+        "another scene": lambda: synthetic_scene("asymmetric", n=800, seed=5, sh_degree=1).scene,
+        "turned a quarter": lambda: shown.with_(means=(shown.means - centre) @ quarter.T + centre),
+        "out of view": lambda: shown.with_(means=shown.means + 100.0),
+    }
+    config = CompressConfig.for_preset("balanced", iterations=5, fit_views=4, eval_views=2, eval_resolution=48,
+                                       max_levels=1, device="cpu", pictures=False)  # fmt: skip
+    steps = []
+    with pytest.raises(DatasetError) as refused:
+        compress(uploads[upload](), images=tmp_path, config=config, progress=lambda e: steps.append(e.stage))
+    assert refused.value.code == "images_mismatch"
+    assert "codec" not in steps and "levels" not in steps
+    assert compress(shown, images=tmp_path, config=config).report.cameras.fitting.source == "photographs"
