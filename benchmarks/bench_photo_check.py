@@ -3,11 +3,11 @@
 A job's decisions hold the upload's own PSNR against its photographs, less the budget. Photographs of another scene,
 or poses in another frame than the scene's, put that floor at a few dB, where any mirror and any quantiser pass it.
 ``views.check_photographs`` refuses them (``images_mismatch``): where the upload renders opaque on the fitting
-photographs, it must match them better than a flat colour per photograph does. Each row is one upload against one
-photograph set, on the fitting set a job would use (the product's defaults):
+photographs, it must match them 3 dB better than a flat colour per photograph does. Each row is one upload against
+one photograph set, on the fitting set a job would use (the product's defaults):
 
     generated   each kind's capture-like upload against photographs of its truth ("shown"), and three that do not
-                show it: another generated scene, the upload turned a quarter about the vertical, moved by 0.3 radii
+                show it: another generated scene, the upload turned a quarter about z, moved by 0.3 radii
     real        scenes of the data folder against the two photograph sets there (none was trained from them), and,
                 with ``--captures``, the scenes ``bench_pipeline.py --captures`` trained from each set (cached in its
                 work folder), against their own photographs and against the other set's
