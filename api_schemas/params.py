@@ -42,10 +42,14 @@ class JobParams(BaseModel):
     )
     max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
     iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")
-    train_views: int | None = Field(None, ge=1, le=512, description="cameras the fine-tune trains on")
+    train_views: int | None = Field(
+        None, ge=1, le=512, description="cameras the fine-tune trains on (photographs: all that do not fit)"
+    )
     fit_views: int | None = Field(None, ge=1, le=256, description="cameras every decision is taken on")
     eval_views: int | None = Field(None, ge=1, le=256, description="cameras the report scores (fitted on nothing)")
-    resolution: int | None = Field(None, ge=16, le=2048, description="longest side of training views, pixels")
+    resolution: int | None = Field(
+        None, ge=16, le=2048, description="longest side of training views, pixels (photographs: eval_resolution)"
+    )
     eval_resolution: int | None = Field(
         None, ge=16, le=2048, description="longest side of fitting and evaluation views, pixels"
     )

@@ -84,8 +84,10 @@ class CompressConfig:
                   photographs, the dataset's test split is the evaluation set (at most ``eval_views`` of it).
                   Per-Gaussian decisions (pruning, SH bands) see only what the fitting cameras see: 16 of them cover
                   a capture where 8 left parts unseen that other cameras see (BENCHMARKS, "Pipeline").
-    resolution    longest side, in pixels, of the training views; the fitting and evaluation views are rendered at
-                  ``eval_resolution``.
+    resolution    longest side, in pixels, of the training views when they are renders of the input; the fitting and
+                  evaluation views are rendered at ``eval_resolution``. Photographs are all read at
+                  ``eval_resolution`` and every training photograph that does not fit trains: fitting photographs
+                  at a lower resolution than they are judged at leaves a fine-tune short of what a level needs.
     pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
     """
 

@@ -32,7 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-views", type=int)
     p.add_argument("--fit-views", type=int)
     p.add_argument("--eval-views", type=int)
-    p.add_argument("--resolution", type=int, help="longest side of the training views, pixels")
+    p.add_argument(
+        "--resolution", type=int, help="longest side of the training views, pixels (photographs: --eval-resolution)"
+    )
     p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
     p.add_argument("--seed", type=int)
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")

@@ -33,9 +33,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--psnr-budget", type=float, help="dB of PSNR all lossy stages may cost together")
     p.add_argument("--max-levels", type=int, help="cap on mirror levels")
     p.add_argument("--iterations", type=int, help="optimisation steps per level")
-    p.add_argument("--resolution", type=int, help="longest side of the training views, pixels")
+    p.add_argument(
+        "--resolution", type=int, help="longest side of the training views, pixels (photographs: --eval-resolution)"
+    )
     p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
-    p.add_argument("--train-views", type=int, help="cameras the fine-tune trains on")
+    p.add_argument(
+        "--train-views", type=int, help="cameras the fine-tune trains on (photographs: all that do not fit)"
+    )
     p.add_argument("--fit-views", type=int, help="cameras every decision is taken on")
     p.add_argument("--eval-views", type=int, help="cameras the report scores (fitted on nothing)")
     p.add_argument("--seed", type=int)
