@@ -5,7 +5,10 @@ Images are float32 [H, W, 3] in [0, 1]; RGBA images are composited on a chosen b
 
 NeRF-Synthetic: ``transform_matrix`` is camera-to-world with OpenGL/Blender camera axes (x right, y up, z back);
 the focal length comes from ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy`` when given, as in
-instant-ngp style files).
+instant-ngp style files, also per frame). A single ``transforms.json`` (instant-ngp, nerfstudio), or a
+``transforms_train.json`` without ``transforms_test.json``, is split by the LLFF hold-out below. Distortion
+coefficients (``k1``, ``k2``, ``k3``, ``k4``, ``p1``, ``p2``) must be zero and ``camera_model``, when given, a
+pinhole or OPENCV one, as for COLMAP.
 
 COLMAP: ``sparse/0/{cameras,images}.{txt,bin}`` (binary preferred when both exist; ``points3D`` is not needed).
 Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
@@ -36,6 +39,8 @@ Layout = Literal["nerf_synthetic", "colmap"]
 
 LLFF_HOLD = 8
 _NERF_SPLITS = ("train", "val", "test")
+_NERF_SINGLE = "transforms.json"  # instant-ngp and nerfstudio: every frame in one file
+_NERF_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 # NeRF-Synthetic's OpenGL camera axes (x right, y up, z back) to ours, OpenCV's (x right, y down, z forward); its own
 # inverse.
@@ -190,8 +195,8 @@ def _find_image(root: Path, file_path: str) -> Path:
     )
 
 
-def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
-    path = root / f"transforms_{split}.json"
+def _nerf_frames(root: Path, name: str) -> list[PosedFrame]:
+    path = root / name
     if not path.is_file():
         raise DatasetError("not_found", f"{root.name}: no {path.name}")
     try:
@@ -213,7 +218,7 @@ def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
             raise DatasetError("bad_transforms", f"{path.name}: frame {i} transform_matrix is not a rigid 4x4 pose")
         image_path = _find_image(root, file_path)
         width, height = _image_size(image_path)
-        fx, fy, cx, cy = _nerf_intrinsics(meta, width, height, path)
+        fx, fy, cx, cy = _nerf_intrinsics({**meta, **frame}, width, height, path)
         rotation = (c2w[:3, :3] @ _GL_TO_CV).T
         t = -rotation @ c2w[:3, 3]
         camera = Camera(
@@ -224,6 +229,16 @@ def _nerf_frames(root: Path, split: str) -> list[PosedFrame]:
 
 
 def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float, float, float, float]:
+    model = meta.get("camera_model", "OPENCV")
+    if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
+        raise DatasetError("unknown_camera_model", f"{path.name}: camera model {model!r} is not a pinhole one")
+    try:
+        distortion = [float(meta.get(k, 0.0)) for k in _NERF_DISTORTION]
+    except (TypeError, ValueError) as exc:
+        raise DatasetError("bad_transforms", f"{path.name}: bad distortion coefficients ({exc})") from None
+    if any(distortion):
+        raise DatasetError("distorted_camera", f"{path.name}: distortion coefficients are not zero; undistort the "
+                           "images first (nerfstudio's ns-process-data, COLMAP's image_undistorter)")  # fmt: skip
     try:
         if "fl_x" in meta:
             # Given for a stated image size, rescaled to the size actually read.
@@ -243,16 +258,31 @@ def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[f
 
 def nerf_synthetic_frames(root: str | Path, split: Split = "train") -> list[PosedFrame]:
     """Cameras and image paths of a NeRF-Synthetic split ("all": every transforms file present, in train, val,
-    test order)."""
+    test order). Without a test split (a single ``transforms.json``, or no ``transforms_test.json``), the frames
+    sorted by file path are split by the LLFF hold-out."""
     root = Path(root)
-    if split == "all":
-        present = [s for s in _NERF_SPLITS if (root / f"transforms_{s}.json").is_file()]
-        if not present:
-            raise DatasetError("not_found", f"{root.name}: no transforms_*.json")
-        return [f for s in present for f in _nerf_frames(root, s)]
-    if split not in _NERF_SPLITS:
+    if split != "all" and split not in _NERF_SPLITS:
         raise DatasetError("bad_split", f"unknown split {split!r}; expected train, val, test or all")
-    return _nerf_frames(root, split)
+    present = [s for s in _NERF_SPLITS if (root / f"transforms_{s}.json").is_file()]
+    if not present:
+        if not (root / _NERF_SINGLE).is_file():
+            raise DatasetError("not_found", f"{root.name}: no transforms_*.json or {_NERF_SINGLE}")
+        return _held_out(_nerf_frames(root, _NERF_SINGLE), split)
+    if split == "all":
+        return [f for s in present for f in _nerf_frames(root, f"transforms_{s}.json")]
+    if split in ("train", "test") and "test" not in present and "train" in present:
+        return _held_out(_nerf_frames(root, "transforms_train.json"), split)
+    return _nerf_frames(root, f"transforms_{split}.json")
+
+
+def _held_out(frames: list[PosedFrame], split: Split) -> list[PosedFrame]:
+    """``split`` of ``frames`` by the LLFF hold-out (sorted by name, every ``LLFF_HOLD``-th is "test"; no "val")."""
+    if split == "all":
+        return frames
+    if split == "val":
+        return []
+    ordered = sorted(frames, key=lambda f: f.name)
+    return [f for i, f in enumerate(ordered) if (i % LLFF_HOLD == 0) == (split == "test")]
 
 
 def load_nerf_synthetic(
@@ -272,7 +302,8 @@ def load_nerf_synthetic(
 def write_nerf_synthetic(root: str | Path, split: Split, cameras: list[Camera], images: list[Tensor]) -> None:
     """The inverse of ``load_nerf_synthetic`` for one split: ``transforms_{split}.json`` (OpenGL camera-to-world,
     the cameras' shared ``fl_x``, ``fl_y``, ``cx``, ``cy``) and ``{split}/r_{i}.png`` from images [H, W, 3] in
-    [0, 1], 8 bits per channel, no alpha (read back as they are, whatever the background)."""
+    [0, 1], 8 bits per channel, no alpha (read back as they are, whatever the background). Without a test split
+    the set reads back held out (``nerf_synthetic_frames``): read a lone split back as "all"."""
     from PIL import Image
 
     if split not in _NERF_SPLITS:
@@ -583,14 +614,14 @@ def dataset_layout(root: str | Path) -> Layout:
     root = Path(root)
     if not root.is_dir():
         raise DatasetError("not_found", f"dataset folder {root} does not exist")
-    if any((root / f"transforms_{s}.json").is_file() for s in _NERF_SPLITS):
+    if any((root / f"transforms_{s}.json").is_file() for s in _NERF_SPLITS) or (root / _NERF_SINGLE).is_file():
         return "nerf_synthetic"
     if colmap_model_dir(root) is not None:
         return "colmap"
     raise DatasetError(
         "unknown_layout",
-        f"{root.name}: neither a NeRF-Synthetic dataset (transforms_train.json, ...) nor a COLMAP one "
-        f"(sparse/0/cameras.bin or cameras.txt)",
+        f"{root.name}: neither a NeRF-Synthetic dataset (transforms_train.json, ... or transforms.json) nor a COLMAP "
+        f"one (sparse/0/cameras.bin or cameras.txt)",
     )
 
 

@@ -242,7 +242,7 @@ def extract(archive: Path, dest: Path, limits: ArchiveLimits) -> int:
 
 
 def _layout(files: set[tuple[str, ...]], root: tuple[str, ...]) -> Layout | None:
-    if any(root + (f"transforms_{split}.json",) in files for split in SPLITS):
+    if any(root + (f"transforms_{split}.json",) in files for split in SPLITS) or root + ("transforms.json",) in files:
         return "nerf_synthetic"
     for model in (root + ("sparse", "0"), root + ("sparse",)):
         if any(model + (f"cameras.{ext}",) in files for ext in ("bin", "txt")):
@@ -267,7 +267,7 @@ def find_dataset(entries: list[Entry]) -> tuple[Layout, tuple[str, ...]]:
         current += (next(iter(children)),)
     raise _invalid(
         "bad_dataset",
-        "images: neither a NeRF-Synthetic dataset (transforms_train.json, ...) nor a COLMAP one "
+        "images: neither a NeRF-Synthetic dataset (transforms_train.json, ... or transforms.json) nor a COLMAP one "
         "(sparse/0/cameras.bin or cameras.txt) at the top of the archive",
     )
 

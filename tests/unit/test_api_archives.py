@@ -68,6 +68,12 @@ def test_dataset_in_a_folder_is_found(tmp_path: Path) -> None:
     assert (tmp_path / "out" / "scene" / "train" / "r_1.png").read_bytes() == NERF["scene/train/r_1.png"]
 
 
+def test_a_single_transforms_json_is_a_nerf_dataset(tmp_path: Path) -> None:
+    entries = {"capture/transforms.json": NERF["scene/transforms_train.json"], "capture/images/f_0.png": _png()}
+    dataset = extract_dataset(_write_zip(tmp_path / "n.zip", entries), tmp_path / "out", LIMITS)
+    assert (dataset.layout, dataset.root, dataset.images) == ("nerf_synthetic", "capture", 1)
+
+
 def test_colmap_at_the_top(tmp_path: Path) -> None:
     entries = {"sparse/0/cameras.txt": b"# none\n", "images/a.jpg": _png(), "images/b.jpg": _png()}
     dataset = extract_dataset(_write_zip(tmp_path / "c.zip", entries), tmp_path / "out", LIMITS)

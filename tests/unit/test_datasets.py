@@ -94,13 +94,48 @@ def test_nerf_cameras_and_compositing(tmp_path: Path) -> None:
 
 def test_nerf_scale_and_max_views(tmp_path: Path) -> None:
     cams = poses(6)
-    write_nerf(tmp_path, {"train": cams})
+    write_nerf(tmp_path, {"train": cams, "test": cams[:1]})
     views = load_nerf_synthetic(tmp_path, "train", max_views=3, scale=0.5)
     assert [v.name for v in views] == ["./train/r_0", "./train/r_2", "./train/r_4"]
     for view, cam in zip(views, cams[0::2], strict=True):
         assert view.image.shape == (15, 20, 3)
         assert_same_pose(view.camera, cam.resized(20, 15))
         assert 0.0 <= float(view.image.min()) and float(view.image.max()) <= 1.0
+
+
+def test_a_nerf_dataset_without_a_test_split_is_held_out_as_llff(tmp_path: Path) -> None:
+    """instant-ngp and nerfstudio write one transforms.json (intrinsics also per frame); some NeRF-style sets only
+    transforms_train.json. Their test split is every 8th frame by name, as for COLMAP, never a training frame."""
+    cams = poses(10)
+    write_nerf(tmp_path / "single", {"train": cams})
+    meta = json.loads((tmp_path / "single" / "transforms_train.json").read_text())
+    meta["frames"] = meta["frames"][::-1]  # the file's order is not the split's
+    meta["frames"][0].update(fl_x=30.0, w=40, h=30)  # this frame's own focal length
+    (tmp_path / "single" / "transforms.json").write_text(json.dumps(meta))
+    (tmp_path / "single" / "transforms_train.json").unlink()
+    write_nerf(tmp_path / "train_only", {"train": cams})
+    names = sorted(f"./train/r_{i}" for i in range(10))
+    for root in (tmp_path / "single", tmp_path / "train_only"):
+        assert dataset_layout(root) == "nerf_synthetic"
+        test = [f.name for f in dataset_frames(root, "test")]
+        train = [f.name for f in dataset_frames(root, "train")]
+        assert test == names[::8] and sorted(train + test) == names
+    own = {f.name: f.camera for f in dataset_frames(tmp_path / "single", "all")}["./train/r_9"]
+    assert own.fx == pytest.approx(30.0) and own.fy == pytest.approx(30.0)
+
+
+def test_nerf_cameras_must_be_pinholes_without_distortion(tmp_path: Path) -> None:
+    write_nerf(tmp_path, {"train": poses(2)})
+    path = tmp_path / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    for changes, code in (({"k1": 0.05}, "distorted_camera"), ({"camera_model": "OPENCV_FISHEYE"},
+                          "unknown_camera_model"), ({"p2": "x"}, "bad_transforms")):  # fmt: skip
+        path.write_text(json.dumps({**meta, **changes}))
+        with pytest.raises(DatasetError) as err:
+            load_nerf_synthetic(tmp_path, "train")
+        assert err.value.code == code
+    path.write_text(json.dumps({**meta, "k1": 0.0, "p1": 0, "camera_model": "OPENCV"}))
+    assert len(load_nerf_synthetic(tmp_path, "all")) == 2
 
 
 def test_nerf_errors(tmp_path: Path) -> None:
@@ -368,7 +403,7 @@ def test_written_nerf_split_reads_back_as_it_was_written(tmp_path: Path) -> None
     gen = torch.Generator().manual_seed(0)
     images = [torch.rand(cam.height, cam.width, 3, generator=gen) for cam in cams]
     write_nerf_synthetic(tmp_path, "train", cams, images)
-    views = load_nerf_synthetic(tmp_path, "train", background=(0.3, 0.6, 0.9))  # no alpha: the background is unused
+    views = load_nerf_synthetic(tmp_path, "all", background=(0.3, 0.6, 0.9))  # no alpha: the background is unused
     for view, cam, image in zip(views, cams, images, strict=True):
         assert_same_pose(view.camera, cam)
         torch.testing.assert_close(view.image, (image * 255).round() / 255, rtol=0, atol=1e-6)
