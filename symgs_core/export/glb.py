@@ -89,7 +89,10 @@ def write_glb(scene: GaussianScene) -> bytes:
 
     blob, views, accessors, semantic = bytearray(), [], [], {}
     for index, (name, values, kind) in enumerate(attributes):
-        raw = values.astype(np.uint8 if values.dtype == np.uint8 else "<f4")
+        with np.errstate(over="ignore"):
+            raw = values.astype(np.uint8 if values.dtype == np.uint8 else "<f4")
+        if not np.isfinite(raw).all():  # exp of a huge log-scale: finite in float64, not in the file's float32
+            raise ValueError(f"a glTF file stores finite attributes only: {name} overflows float32")
         data = raw.tobytes()
         views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data), "target": ARRAY_BUFFER})
         accessor = {

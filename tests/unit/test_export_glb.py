@@ -143,3 +143,11 @@ def test_reader_refuses_broken_files() -> None:
             read_glb(broken)
     with pytest.raises(ValueError, match="at least one"):
         write_glb(scene_for_export(n=0, degree=0))
+
+
+def test_a_scale_beyond_float32_is_refused_not_written_as_infinity() -> None:
+    scene = scene_for_export(n=20, degree=0)
+    scales = scene.scales.clone()
+    scales[3, 1] = 100.0  # finite as a log-scale, exp(100) is not a float32
+    with pytest.raises(ValueError, match="SCALE overflows float32"):
+        write_glb(scene.with_(scales=scales))
