@@ -86,8 +86,8 @@ class CompressConfig:
                   a capture where 8 left parts unseen that other cameras see (BENCHMARKS, "Pipeline").
     resolution    longest side, in pixels, of the training views when they are renders of the input; the fitting and
                   evaluation views are rendered at ``eval_resolution``. Photographs are all read at
-                  ``eval_resolution`` and every training photograph that does not fit trains: fitting photographs
-                  at a lower resolution than they are judged at leaves a fine-tune short of what a level needs.
+                  ``eval_resolution`` and every training photograph that does not fit trains: a fine-tune trained on
+                  them at a lower resolution than they are judged at falls short of what a level needs.
     pictures      draw the job's PNG pictures and charts into ``CompressResult.images``.
     """
 

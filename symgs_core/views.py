@@ -188,7 +188,7 @@ def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:
     which the upload scores ``fitting``), it must match them ``MATCH_MARGIN_DB`` better than a flat colour does
     (``flat_colour_psnr``): its error there at most half the flat colour's.
 
-    Scenes trained from the photographs beat the flat colour by 9 to 17 dB; the photographs of another scene, or
+    Uploads of what the photographs show beat the flat colour by 9 to 17 dB; the photographs of another scene, or
     poses in another frame than the scene's, fall below it (BENCHMARKS, "Photographs that do not show the upload").
     Against such photographs every decision would chase noise: the floor sits at a few dB and any mirror passes it.
     """
