@@ -8,7 +8,9 @@ the focal length comes from ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy
 instant-ngp style files, also per frame). A single ``transforms.json`` (instant-ngp, nerfstudio), or a
 ``transforms_train.json`` without ``transforms_test.json``, is split by the LLFF hold-out below. Distortion
 coefficients (``k1``, ``k2``, ``k3``, ``k4``, ``p1``, ``p2``) must be zero and ``camera_model``, when given, a
-pinhole or OPENCV one, as for COLMAP.
+pinhole or OPENCV one, as for COLMAP. nerfstudio trains (and by default exports its splats) in a frame of its own,
+turned, moved and scaled from the poses' frame; with its ``dataparser_transforms.json`` (``transform`` [3, 4],
+``scale``) beside the transforms file, the poses are brought into that frame, as nerfstudio brings them.
 
 COLMAP: ``sparse/0/{cameras,images}.{txt,bin}`` (binary preferred when both exist; ``points3D`` is not needed).
 Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
@@ -41,6 +43,7 @@ LLFF_HOLD = 8
 _NERF_SPLITS = ("train", "val", "test")
 _NERF_SINGLE = "transforms.json"  # instant-ngp and nerfstudio: every frame in one file
 _NERF_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+_NERFSTUDIO_FRAME = "dataparser_transforms.json"
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 # NeRF-Synthetic's OpenGL camera axes (x right, y up, z back) to ours, OpenCV's (x right, y down, z forward); its own
 # inverse.
@@ -207,6 +210,7 @@ def _nerf_frames(root: Path, name: str) -> list[PosedFrame]:
         raise DatasetError("bad_transforms", f"{path.name}: expected an object with a 'frames' list")
     if "camera_angle_x" not in meta and "fl_x" not in meta:
         raise DatasetError("bad_transforms", f"{path.name}: neither 'camera_angle_x' nor 'fl_x' is given")
+    to_frame, scale = _nerfstudio_frame(root)
     frames = []
     for i, frame in enumerate(meta["frames"]):
         try:
@@ -219,13 +223,32 @@ def _nerf_frames(root: Path, name: str) -> list[PosedFrame]:
         image_path = _find_image(root, file_path)
         width, height = _image_size(image_path)
         fx, fy, cx, cy = _nerf_intrinsics({**meta, **frame}, width, height, path)
-        rotation = (c2w[:3, :3] @ _GL_TO_CV).T
-        t = -rotation @ c2w[:3, 3]
+        rotation = (to_frame[:, :3] @ c2w[:3, :3] @ _GL_TO_CV).T
+        t = -rotation @ (scale * (to_frame[:, :3] @ c2w[:3, 3] + to_frame[:, 3]))
         camera = Camera(
             torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), fx, fy, cx, cy, width, height, file_path
         )
         frames.append(PosedFrame(camera, image_path, file_path))
     return frames
+
+
+def _nerfstudio_frame(root: Path) -> tuple[np.ndarray, float]:
+    """The rigid ``transform`` [3, 4] and ``scale`` that take the poses into nerfstudio's training frame (identity
+    and 1 without ``dataparser_transforms.json``)."""
+    path = root / _NERFSTUDIO_FRAME
+    if not path.is_file():
+        return np.eye(3, 4), 1.0
+    try:
+        meta = json.loads(path.read_text())
+        transform = np.asarray(meta["transform"], dtype=np.float64)
+        scale = float(meta.get("scale", 1.0))
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DatasetError("bad_transforms", f"{path.name}: expected 'transform' [3, 4] and 'scale' ({exc})") from None
+    if transform.shape != (3, 4) or not np.isfinite(transform).all() or not _rotation_ok(transform[:, :3]):
+        raise DatasetError("bad_transforms", f"{path.name}: 'transform' is not a rigid 3x4 transform")
+    if not (math.isfinite(scale) and scale > 0):
+        raise DatasetError("bad_transforms", f"{path.name}: 'scale' must be positive, got {scale}")
+    return transform, scale
 
 
 def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float, float, float, float]:

@@ -194,16 +194,17 @@ def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:
     """
     from .datasets import DatasetError
 
+    frame = ("their poses are not in its frame (a scene trained by nerfstudio needs the dataparser_transforms.json "
+             "of its run beside transforms.json)")  # fmt: skip
     flat = flat_colour_psnr(views)
     if math.isnan(flat):
         raise DatasetError("images_mismatch", "the upload draws nothing in the photographs' views: they do not show "
-                           "this scene, or their poses are not in its frame")  # fmt: skip
+                           f"this scene, or {frame}")  # fmt: skip
     if not fitting.psnr_object >= flat + MATCH_MARGIN_DB:
         raise DatasetError(
             "images_mismatch",
             f"where the upload is drawn, it matches the photographs at {fitting.psnr_object:.1f} dB, hardly better "
-            f"than a flat colour does ({flat:.1f} dB): they do not show this scene, or their poses are not in its "
-            "frame",
+            f"than a flat colour does ({flat:.1f} dB): they do not show this scene, or {frame}",
         )
 
 

@@ -26,6 +26,7 @@ from symgs_core.datasets import (
     read_colmap_model,
     write_nerf_synthetic,
 )
+from symgs_core.synthetic import quat_to_matrix
 from tests.conftest import shared_file
 
 MODEL_IDS = {name: i for i, (name, _) in COLMAP_MODELS.items()}
@@ -122,6 +123,31 @@ def test_a_nerf_dataset_without_a_test_split_is_held_out_as_llff(tmp_path: Path)
         assert test == names[::8] and sorted(train + test) == names
     own = {f.name: f.camera for f in dataset_frames(tmp_path / "single", "all")}["./train/r_9"]
     assert own.fx == pytest.approx(30.0) and own.fy == pytest.approx(30.0)
+
+
+def test_nerfstudio_frame_brings_the_poses_where_its_splats_are(tmp_path: Path) -> None:
+    """nerfstudio trains and exports in its own frame: X' = scale (R X + t). With its dataparser_transforms.json the
+    loaded cameras see every X' at the pixel where the dataset's cameras see X."""
+    cams = poses(3)
+    write_nerf(tmp_path, {"train": cams, "test": cams[:1]})
+    turn = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([[0.9, 0.2, -0.3, 0.25]]), dim=1))[0].double()
+    shift, scale = torch.tensor([0.4, -1.2, 2.0], dtype=torch.float64), 0.37
+    transform = torch.cat([turn, shift[:, None]], dim=1)
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": transform.tolist(), "scale": scale}))
+    points = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.2], [-0.3, 0.2, 0.6]], dtype=torch.float64)
+    moved = scale * (points @ turn.T + shift)
+
+    def pixels(cam: Camera, x: torch.Tensor) -> torch.Tensor:
+        c = x @ cam.R.double().T + cam.t.double()
+        return torch.stack([cam.fx * c[:, 0] / c[:, 2] + cam.cx, cam.fy * c[:, 1] / c[:, 2] + cam.cy], dim=1)
+
+    loaded = [f.camera for f in dataset_frames(tmp_path, "train")]
+    for cam, new in zip(cams, loaded, strict=True):
+        torch.testing.assert_close(pixels(new, moved), pixels(cam, points), rtol=0, atol=1e-3)
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": (2 * transform).tolist()}))
+    with pytest.raises(DatasetError) as err:
+        dataset_frames(tmp_path, "train")
+    assert err.value.code == "bad_transforms"
 
 
 def test_nerf_cameras_must_be_pinholes_without_distortion(tmp_path: Path) -> None:
