@@ -95,7 +95,6 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=5000, help="Gaussians of each generated upload")
     parser.add_argument("--photo-resolution", type=int, default=64, help="generated photographs' side, pixels")
     args = parser.parse_args()
-    torch.manual_seed(0)
     config = CompressConfig()
     rows = generated(args.n, args.photo_resolution, config.fit_views)
     if args.data is not None:

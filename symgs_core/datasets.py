@@ -298,14 +298,19 @@ def nerf_synthetic_frames(root: str | Path, split: Split = "train") -> list[Pose
     return _nerf_frames(root, f"transforms_{split}.json")
 
 
+def _in_split(index: int, split: Split) -> bool:
+    """Whether the ``index``-th view by name is in ``split`` ("train", "test" or "all") by the LLFF hold-out: every
+    ``LLFF_HOLD``-th is "test"."""
+    return split == "all" or (index % LLFF_HOLD == 0) == (split == "test")
+
+
 def _held_out(frames: list[PosedFrame], split: Split) -> list[PosedFrame]:
-    """``split`` of ``frames`` by the LLFF hold-out (sorted by name, every ``LLFF_HOLD``-th is "test"; no "val")."""
+    """``split`` of ``frames`` by the LLFF hold-out (``_in_split``; no "val")."""
     if split == "all":
         return frames
     if split == "val":
         return []
-    ordered = sorted(frames, key=lambda f: f.name)
-    return [f for i, f in enumerate(ordered) if (i % LLFF_HOLD == 0) == (split == "test")]
+    return [f for i, f in enumerate(sorted(frames, key=lambda f: f.name)) if _in_split(i, split)]
 
 
 def load_nerf_synthetic(
@@ -577,8 +582,7 @@ def colmap_frames(
     folder = _colmap_image_dir(root, images)
     frames = []
     for index, image in enumerate(sorted(registered.values(), key=lambda im: im.name)):
-        held_out = index % LLFF_HOLD == 0
-        if (split == "train" and held_out) or (split == "test" and not held_out):
+        if not _in_split(index, split):
             continue
         cam = cameras.get(image.camera_id)
         if cam is None:

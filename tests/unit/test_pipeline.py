@@ -298,7 +298,6 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
 
 
-
 @pytest.mark.parametrize("upload", ["another scene", "turned a quarter", "out of view"])
 def test_photographs_that_do_not_show_the_upload_are_refused_before_any_work(tmp_path, upload):
     """Against the photographs of another scene, or with poses in another frame, every decision would chase noise
