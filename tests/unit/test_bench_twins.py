@@ -24,6 +24,8 @@ def test_residuals_of_twins_cost_a_fraction_of_the_gaussians_and_of_independent_
     twins = measure(synthetic_scene("global", n=3000, seed=2, sh_degree=1, capture="twins").scene)
     independent = measure(synthetic_scene("global", n=3000, seed=2, sh_degree=1, capture="independent").scene)
     assert twins["paired"] > 0.3 * twins["gaussians"] and independent["paired"] > 0.2 * independent["gaussians"]
+    assert twins["near"] == twins["paired"]  # every twin lies on its partner's reflection
+    assert independent["near"] < 0.01 * independent["paired"]  # independent Gaussians almost never do
     assert total(twins, 1) < 0.1 * total(twins, 0)  # a twin's residual is all zeros (measured: 1.4%)
     assert total(independent, 1) > 0.75 * total(independent, 0)  # little to predict from an independent half (88%)
     # Rendered: a twin's reflection is the Gaussian it replaces; an independent half's restores the shape, not more.
