@@ -114,6 +114,8 @@ BENCHES: tuple[Bench, ...] = (
           ("pipeline-photos",), env=PASSIVE, estimate="about 20 minutes"),
     Bench("pipeline-real", ("benchmarks/bench_pipeline.py", "--scenes", "{scenes}"), None, ("pipeline-real",),
           scenes=REAL, env=PASSIVE, estimate="about 2 hours"),
+    Bench("pipeline-real-small", ("benchmarks/bench_pipeline.py", "--preset", "small", "--scenes", "{scenes}"), None,
+          ("pipeline-real-small",), scenes=REAL, env=PASSIVE, estimate="about 10 minutes"),
     Bench("twins", ("benchmarks/bench_twins.py", "{scenes}", "--synthetic"), None, ("twins",), scenes=REAL,
           env=PASSIVE),
     Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
