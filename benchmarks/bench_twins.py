@@ -154,7 +154,8 @@ def main() -> None:
         plain, residual = (sum(row[g][i] for g in GROUPS) for i in (0, 1))
         cells = " | ".join(f"{row[g][0]:,} / {row[g][1]:,}" for g in GROUPS)
         print(f"| {name} | {row['gaussians']:,} | {row['paired']:,} | {row['near']:,} | {cells} | {plain:,} | "
-              f"{residual:,} | {residual / plain:.3f} | {row['psnr'][0]:.2f} / {row['psnr'][1]:.2f} |", flush=True)  # fmt: skip
+              f"{residual:,} | {residual / plain:.3f} | {row['psnr'][0]:.2f} / {row['psnr'][1]:.2f} |",
+              flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":
