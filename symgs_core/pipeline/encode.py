@@ -111,6 +111,12 @@ def prune(
     return best[1], best[2]
 
 
+def _identity(choice: Choice) -> tuple:
+    """What makes two choices one archive: each section's rung and codec, and each Gaussian's SH degree."""
+    degrees = None if choice.degrees is None else choice.degrees.cpu().numpy().tobytes()
+    return tuple(sorted(choice.rungs.items())), tuple(repr(c) for c in choice.codecs.values()), degrees
+
+
 def fit_codec(
     state: LevelState,
     fit: Sequence[View],
@@ -141,32 +147,36 @@ def fit_codec(
                          should_stop=should_stop)  # fmt: skip
     best: Fitted | None = None
     target, tries = _AIM * allowed - pruned, []
+    measured: dict[tuple, float] = {}  # each choice's fitting PSNR: the model may give a choice again for a new target
     for check in range(MAX_CHECKS):
         if should_stop is not None and should_stop():
             break
-        tell(0.65 + 0.35 * check / MAX_CHECKS, f"encoding and checking against renders ({check + 1})")
         choice = rd.choose(target, keep=keep)
         if choice.error > target:
             break  # nothing quantised fits: float32 below
-        kept, stored = rd.apply(choice)
-        candidate = LevelState(stored, state.normals, state.offsets, state.bits[kept.to(state.bits.device)])
-        codec = ArchiveCodec(name, {**choice.codecs, "bits": MASKS})
-        archive = write_archive(candidate, meta, codec)
-        decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
-        measured = evaluate(decoded, fit, background, with_ssim=False).worst
-        excess = psnr_to_mse(measured) - psnr_to_mse(psnr_before)
-        tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
-                      "psnr": measured, "bytes": len(archive)})  # fmt: skip
-        if measured >= floor and (best is None or len(archive) < len(best.archive)):
-            dropped = 0
-            if choice.degrees is not None:
-                dropped = int((stored.sh_degree - choice.degrees[choice.keep]).clamp_min(0).sum())
-            steps = rd.steps(choice)
-            best = Fitted(candidate, archive, measured, CodecReport(name, steps.report(), floor, 0), steps, codec,
-                          choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
-                          dropped_bands=dropped)  # fmt: skip
-            if excess >= _CLOSE * allowed:
-                break
+        key, improved = _identity(choice), False
+        if key not in measured:
+            tell(0.65 + 0.35 * check / MAX_CHECKS, f"encoding and checking against renders ({len(tries) + 1})")
+            kept, stored = rd.apply(choice)
+            candidate = LevelState(stored, state.normals, state.offsets, state.bits[kept.to(state.bits.device)])
+            codec = ArchiveCodec(name, {**choice.codecs, "bits": MASKS})
+            archive = write_archive(candidate, meta, codec)
+            decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
+            measured[key] = evaluate(decoded, fit, background, with_ssim=False).worst
+            tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
+                          "psnr": measured[key], "bytes": len(archive)})  # fmt: skip
+            if measured[key] >= floor and (best is None or len(archive) < len(best.archive)):
+                dropped = 0
+                if choice.degrees is not None:
+                    dropped = int((stored.sh_degree - choice.degrees[choice.keep]).clamp_min(0).sum())
+                steps = rd.steps(choice)
+                best = Fitted(candidate, archive, measured[key], CodecReport(name, steps.report(), floor, 0), steps,
+                              codec, choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
+                              dropped_bands=dropped)  # fmt: skip
+                improved = True
+        excess = psnr_to_mse(measured[key]) - psnr_to_mse(psnr_before)
+        if improved and excess >= _CLOSE * allowed:
+            break
         # Rescale the codec's model by what the renders measured beyond the pruning, aiming again at ``_AIM``.
         ratio = max(excess - pruned, 1e-30) / max(choice.error, 1e-30)
         aim = min(max((_AIM * allowed - pruned) / ratio, target / 8.0), target * 8.0)

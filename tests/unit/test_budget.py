@@ -12,6 +12,7 @@ from symgs_core.codec import decode_archive, expand_archive
 from symgs_core.codec.steps import QuantSteps
 from symgs_core.config import floor_for_budget
 from symgs_core.metrics import psnr_to_mse
+from symgs_core.pipeline import encode
 from symgs_core.pipeline.budget import RUNGS, RateDistortion
 from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
 from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
@@ -95,6 +96,23 @@ def test_a_fitted_archive_keeps_its_floor_when_rendered(setting) -> None:  # noq
     assert len(fitted.archive) < 0.3 * len(lossless)
     assert [t["psnr"] >= FLOOR for t in fitted.tries][-1] or fitted.psnr >= FLOOR
     assert fitted.codec.steps is not None and fitted.codec.tries == len(fitted.tries) >= 1
+
+
+def test_a_choice_the_model_gives_again_is_rendered_once(setting, monkeypatch) -> None:  # noqa: ANN001
+    state, views, _ = setting
+    # A model that gives one choice whatever the target: the search goes on re-aiming, the renders do not.
+    choose, prune, asked = RateDistortion.choose, encode.prune, []
+    fixed = 0.05 * psnr_to_mse(FLOOR)  # well within every target the search sets
+    monkeypatch.setattr(encode, "prune", lambda *a, **k: (prune(*a, **k), asked.clear())[0])  # count the search's
+    monkeypatch.setattr(RateDistortion, "choose", lambda self, allowed, keep=None: asked.append(allowed) or
+                        choose(self, fixed, keep=keep))  # fmt: skip
+    checked = []  # archives decoded to be rendered (pruning renders without one)
+    monkeypatch.setattr(encode, "decode_archive", lambda data: checked.append(data) or decode_archive(data))
+    fitted = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=QuantSteps(),
+                       meta={}, name="balanced")  # fmt: skip
+    assert len(asked) >= 2  # the search asked again
+    assert len(checked) == len(fitted.tries) == fitted.codec.tries == 1
+    assert fitted.tries[0]["bytes"] == len(checked[0])
 
 
 def test_no_room_under_the_floor_stores_float32(setting) -> None:  # noqa: ANN001
