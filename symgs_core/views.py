@@ -35,6 +35,11 @@ from .scene import GaussianScene
 DISTANCES = (1.6, 2.8)
 FOV_DEG = 50.0
 OBJECT_ALPHA = 0.5  # a pixel belongs to the object where the uncompressed scene renders at least this opaque
+# Photographs show a flat backdrop around the upload where at least BACKDROP_SHARE of their pixels lie around it and
+# BACKDROP_AGREE of those lie within BACKDROP_SPREAD of their median colour in every channel.
+BACKDROP_SHARE = 0.01
+BACKDROP_SPREAD = 0.1
+BACKDROP_AGREE = 0.9
 MATCH_MARGIN_DB = 3.0  # how much better than a flat colour an upload must match its photographs (check_photographs)
 _SET_SEEDS = {"training": 1, "fitting": 2, "evaluation": 3}
 
@@ -181,6 +186,22 @@ def flat_colour_psnr(views: Sequence[View]) -> float:
             error += float(((drawn - drawn.mean(dim=0)) ** 2).mean(dim=-1).sum())
             pixels += int(mask.sum())
     return mse_to_psnr(error / pixels) if pixels else math.nan
+
+
+def photographed_backdrop(views: Sequence[View]) -> Tensor | None:
+    """The flat colour [3] the photographs of ``views`` show around the upload (where it renders less than half
+    opaque), when they show one: at least ``BACKDROP_SHARE`` of their pixels lie there, and ``BACKDROP_AGREE`` of
+    those within ``BACKDROP_SPREAD`` of its median in every channel. None: real surroundings, or none in view.
+
+    Photographs without an alpha channel carry their backdrop (NeRF-Synthetic's white, a studio sweep); rendered on
+    any other, the upload would miss every pixel around it, and every decision would chase that."""
+    around = torch.cat([target[~mask].reshape(-1, 3) for _, target, mask in views])
+    total = sum(int(mask.numel()) for _, _, mask in views)
+    if not total or len(around) < BACKDROP_SHARE * total:
+        return None
+    colour = around.median(dim=0).values
+    agree = float(((around - colour).abs().amax(dim=1) <= BACKDROP_SPREAD).double().mean())
+    return colour if agree >= BACKDROP_AGREE else None
 
 
 def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:

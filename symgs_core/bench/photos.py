@@ -25,10 +25,11 @@ TRUTH_DENSITY = 4  # the photographed truth holds this many times the upload's G
 
 def photographed(
     kind: SceneKind, folder: str | Path, *, n: int, photos: int, tests: int, resolution: int, sh_degree: int = 1,
-    capture: Capture = "independent", seed: int = 0,
+    capture: Capture = "independent", seed: int = 0, backdrop: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> GaussianScene:  # fmt: skip
     """The upload of a generated ``kind`` scene of about ``n`` Gaussians; ``photos`` training and ``tests`` test
-    photographs (``resolution`` px square, black background) of its truth written to ``folder`` as NeRF-Synthetic."""
+    photographs (``resolution`` px square, on ``backdrop``, without alpha) of its truth written to ``folder`` as
+    NeRF-Synthetic."""
     common = {"seed": seed, "sh_degree": sh_degree}
     upload = synthetic_scene(kind, n=n, capture=capture, sample_seed=2 * seed + 1, **common).scene
     truth = synthetic_scene(kind, n=TRUTH_DENSITY * n, capture="twins", sample_seed=2 * seed + 2, **common).scene
@@ -36,6 +37,6 @@ def photographed(
     for split, count, rig in (("train", photos, 11), ("test", tests, 12)):
         cameras = viewer_cameras(centre, radius, count, resolution, seed=1000 * seed + rig, name=split)
         with torch.no_grad():
-            images = [render(truth, camera, torch.zeros(3)).image for camera in cameras]
+            images = [render(truth, camera, torch.tensor(backdrop)).image for camera in cameras]
         write_nerf_synthetic(folder, split, cameras, images)
     return upload

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -18,10 +19,12 @@ from ..config import PRESETS, CompressConfig
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
-from ..views import check_photographs, dataset_views, evaluate, self_supervised_views
+from ..views import check_photographs, dataset_views, evaluate, photographed_backdrop, self_supervised_views
 from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, rate_model, stages
 from .levels import run_levels
 from .state import LevelState
+
+BACKDROP_SAME = 2 / 255  # a backdrop this close to the job's background is that background, in 8-bit photographs
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
 _STAGES = {
@@ -123,8 +126,14 @@ def compress(
     report("views", 0.0, "preparing views")
     background = torch.zeros(3, device=device)
     if images is not None:
-        views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
-                              resolution=config.eval_resolution, background=background)  # fmt: skip
+        photographs = functools.partial(dataset_views, images, source, fit=config.fit_views, eval=config.eval_views,
+                                        resolution=config.eval_resolution)  # fmt: skip
+        views = photographs(background=background)
+        backdrop = photographed_backdrop(views.fit)
+        if backdrop is not None and float((backdrop - background.cpu()).abs().max()) > BACKDROP_SAME:
+            # Every render of the job (training, fitting, evaluation) draws the upload on the photographs' backdrop.
+            background = backdrop.to(device)
+            views = photographs(background=background)
         own = evaluate(source, views.fit, background, with_ssim=False)
         check_photographs(own, views.fit)
         reference = own.worst
