@@ -11,6 +11,7 @@ coefficients (``k1``, ``k2``, ``k3``, ``k4``, ``p1``, ``p2``) must be zero and `
 pinhole or OPENCV one, as for COLMAP. nerfstudio trains (and by default exports its splats) in a frame of its own,
 turned, moved and scaled from the poses' frame; with its ``dataparser_transforms.json`` (``transform`` [3, 4],
 ``scale``) beside the transforms file, the poses are brought into that frame, as nerfstudio brings them.
+Intrinsics must be finite, sizes and focal lengths positive.
 
 COLMAP: ``sparse/0/{cameras,images}.{txt,bin}`` (binary preferred when both exist; ``points3D`` is not needed).
 Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
@@ -18,7 +19,11 @@ to the size of the image actually read. Pinhole models (PINHOLE, SIMPLE_PINHOLE)
 and OPENCV are accepted when their distortion coefficients are zero; otherwise loading fails with
 ``distorted_camera`` (undistort with COLMAP's ``image_undistorter``) unless ``ignore_distortion=True`` treats them
 as pinhole cameras. Fisheye and other models fail with ``unknown_camera_model``. Hold-out split (LLFF
-convention): images sorted by name, every 8th one (index 0, 8, 16, ...) is "test", the rest "train".
+convention): images sorted by name, every 8th one (index 0, 8, 16, ...) is "test", the rest "train". Every
+camera needs a positive size and finite intrinsics (a positive focal length), every image a finite rigid pose.
+
+In either layout an image path that leads out of the dataset folder (absolute, through ``..`` or a symbolic link) is
+refused: uploaded datasets are read on a worker, whose other files they must not reach.
 """
 
 from __future__ import annotations
@@ -171,6 +176,15 @@ def _check_background(background: tuple[float, float, float]) -> tuple[float, fl
     return values  # type: ignore[return-value]
 
 
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _inside(root: Path, path: Path) -> bool:
+    """Whether ``path``, its symbolic links followed, lies in the folder ``root``."""
+    return path.resolve().is_relative_to(root.resolve())
+
+
 def _rotation_ok(r: np.ndarray) -> bool:
     return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
 
@@ -191,6 +205,9 @@ def _find_image(root: Path, file_path: str) -> Path:
     base = root / file_path
     candidates = [base] + [base.with_name(base.name + s) for s in _IMAGE_SUFFIXES]
     for candidate in candidates:
+        # Checked before existence, so that a path out of the folder cannot even learn what exists there.
+        if not _inside(root, candidate):
+            raise DatasetError("bad_transforms", f"image {file_path!r} leads out of the dataset folder {root.name}/")
         if candidate.is_file():
             return candidate
     raise DatasetError(
@@ -262,21 +279,34 @@ def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[f
     if any(distortion):
         raise DatasetError("distorted_camera", f"{path.name}: distortion coefficients are not zero; undistort the "
                            "images first (nerfstudio's ns-process-data, COLMAP's image_undistorter)")  # fmt: skip
-    try:
-        if "fl_x" in meta:
-            # Given for a stated image size, rescaled to the size actually read.
-            sx = width / float(meta.get("w", width))
-            sy = height / float(meta.get("h", height))
-            fx = float(meta["fl_x"]) * sx
-            fy = float(meta.get("fl_y", meta["fl_x"])) * sy
-            return fx, fy, float(meta.get("cx", width / sx / 2)) * sx, float(meta.get("cy", height / sy / 2)) * sy
-        angle = float(meta["camera_angle_x"])
-    except (TypeError, ValueError, ZeroDivisionError) as exc:
-        raise DatasetError("bad_transforms", f"{path.name}: bad intrinsics ({exc})") from None
-    if not 0.0 < angle < math.pi:
+    if "fl_x" in meta:
+        # Given for a stated image size (pixels), rescaled to the size actually read.
+        fl_x = _nerf_number(meta, "fl_x", path)
+        fl_y = _nerf_number(meta, "fl_y", path, default=fl_x)
+        w = _nerf_number(meta, "w", path, default=width)
+        h = _nerf_number(meta, "h", path, default=height)
+        cx = _nerf_number(meta, "cx", path, default=w / 2, positive=False)
+        cy = _nerf_number(meta, "cy", path, default=h / 2, positive=False)
+        sx, sy = width / w, height / h
+        return fl_x * sx, fl_y * sy, cx * sx, cy * sy
+    angle = _nerf_number(meta, "camera_angle_x", path)
+    if angle >= math.pi:
         raise DatasetError("bad_transforms", f"{path.name}: camera_angle_x must be in (0, pi) radians, got {angle}")
     fx = 0.5 * width / math.tan(0.5 * angle)
     return fx, fx, width / 2.0, height / 2.0
+
+
+def _nerf_number(meta: dict, key: str, path: Path, default: float | None = None, positive: bool = True) -> float:
+    """``meta[key]`` (``default`` when absent), finite and, when ``positive``, above 0; a NaN or an infinite value
+    (which JSON readers accept) would otherwise surface far from its cause."""
+    try:
+        value = float(meta.get(key, default))
+    except (TypeError, ValueError) as exc:
+        raise DatasetError("bad_transforms", f"{path.name}: {key} is not a number ({exc})") from None
+    if not _finite(value) or (positive and value <= 0.0):
+        kind = "finite positive" if positive else "finite"
+        raise DatasetError("bad_transforms", f"{path.name}: {key} must be a {kind} number, got {value}")
+    return value
 
 
 def nerf_synthetic_frames(root: str | Path, split: Split = "train") -> list[PosedFrame]:
@@ -513,16 +543,48 @@ def colmap_model_dir(root: Path) -> Path | None:
 
 
 def read_colmap_model(root: str | Path) -> tuple[dict[int, ColmapCamera], dict[int, ColmapImage]]:
-    """Cameras and registered images of a COLMAP reconstruction (binary files preferred over text)."""
+    """Cameras and registered images of a COLMAP reconstruction (binary files preferred over text), each camera and
+    pose checked (``_check_camera``, ``_check_pose``)."""
     root = Path(root)
     folder = colmap_model_dir(root)
     if folder is None:
         raise DatasetError("not_found", f"{root.name}: no sparse/0/cameras.bin or cameras.txt")
     if (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file():
-        return read_colmap_cameras_binary(folder / "cameras.bin"), read_colmap_images_binary(folder / "images.bin")
-    if (folder / "cameras.txt").is_file() and (folder / "images.txt").is_file():
-        return read_colmap_cameras_text(folder / "cameras.txt"), read_colmap_images_text(folder / "images.txt")
-    raise DatasetError("not_found", f"{root.name}: {folder.name}/ lacks a matching images.bin or images.txt")
+        cameras = read_colmap_cameras_binary(folder / "cameras.bin")
+        images = read_colmap_images_binary(folder / "images.bin")
+    elif (folder / "cameras.txt").is_file() and (folder / "images.txt").is_file():
+        cameras = read_colmap_cameras_text(folder / "cameras.txt")
+        images = read_colmap_images_text(folder / "images.txt")
+    else:
+        raise DatasetError("not_found", f"{root.name}: {folder.name}/ lacks a matching images.bin or images.txt")
+    for camera_id, camera in cameras.items():
+        _check_camera(camera_id, camera)
+    for image in images.values():
+        _check_pose(image)
+    return cameras, images
+
+
+def _check_camera(camera_id: int, camera: ColmapCamera) -> None:
+    """Refuses a camera no image can be scaled to: a size (pixels) that is not positive, a parameter that is not
+    finite, a focal length that is not positive."""
+    if camera.width <= 0 or camera.height <= 0:
+        raise DatasetError("malformed", f"camera {camera_id}: size {camera.width}x{camera.height} is not positive")
+    if not _finite(*camera.params):
+        raise DatasetError("malformed", f"camera {camera_id}: parameters {list(camera.params)} are not all finite")
+    if camera.model in _INTRINSICS:
+        focal = [camera.params[i] for i in _INTRINSICS[camera.model][0][:2]]
+        if min(focal) <= 0.0:
+            raise DatasetError("malformed", f"camera {camera_id}: focal length {focal} is not positive")
+
+
+def _check_pose(image: ColmapImage) -> None:
+    """Refuses an image whose quaternion is no rotation (zero, NaN, infinite) or whose translation is not finite."""
+    with np.errstate(invalid="ignore", divide="ignore"):  # such a quaternion normalises to NaN: no rotation
+        rotation = _quat_to_rotmat(image.qvec)
+    if not (_rotation_ok(rotation) and _finite(*image.tvec)):
+        raise DatasetError(
+            "malformed", f"image {image.name}: pose {list(image.qvec)}, {list(image.tvec)} is not a finite rigid one"
+        )
 
 
 def _quat_to_rotmat(q: tuple[float, float, float, float]) -> np.ndarray:
@@ -589,6 +651,9 @@ def colmap_frames(
             raise DatasetError("camera_missing", f"image {image.name} refers to missing camera {image.camera_id}")
         fx, fy, cx, cy = _pinhole(cam, ignore_distortion, image.camera_id)
         path = folder / image.name
+        # Checked before existence, so that a name out of the folder cannot even learn what exists there.
+        if not _inside(root, path):
+            raise DatasetError("malformed", f"image {image.name!r} leads out of the dataset folder {root.name}/")
         if not path.is_file():
             raise DatasetError("image_missing", f"image {image.name} not found in {folder.name}/")
         width, height = _image_size(path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import struct
 from pathlib import Path
 
@@ -201,6 +202,31 @@ def test_nerf_errors(tmp_path: Path) -> None:
     assert err.value.code == "bad_image"
 
 
+@pytest.mark.parametrize(
+    ("changes", "field"),
+    [
+        ({"fl_x": 30.0, "cx": math.nan}, "cx"),
+        ({"fl_x": 30.0, "cy": math.inf}, "cy"),
+        ({"fl_x": math.nan}, "fl_x"),
+        ({"fl_x": 0.0}, "fl_x"),
+        ({"fl_x": 30.0, "fl_y": -30.0}, "fl_y"),
+        ({"fl_x": 30.0, "w": 0}, "w"),
+        ({"fl_x": 30.0, "h": math.inf}, "h"),
+        ({"camera_angle_x": math.nan}, "camera_angle_x"),
+        ({"camera_angle_x": -0.5}, "camera_angle_x"),
+    ],
+)
+def test_nerf_intrinsics_must_be_finite_and_positive(tmp_path: Path, changes: dict, field: str) -> None:
+    """JSON readers accept NaN and Infinity: refused while the intrinsics are read, naming the field, not later as
+    photographs that match no camera."""
+    write_nerf(tmp_path, {"train": poses(2)})
+    path = tmp_path / "transforms_train.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+    with pytest.raises(DatasetError) as err:
+        load_nerf_synthetic(tmp_path, "train")
+    assert err.value.code == "bad_transforms" and f": {field} " in err.value.message
+
+
 def test_unknown_layout(tmp_path: Path) -> None:
     with pytest.raises(DatasetError) as err:
         load_dataset(tmp_path)
@@ -354,6 +380,62 @@ def test_colmap_errors(tmp_path: Path) -> None:
     assert err.value.code == "bad_split"
 
 
+@pytest.mark.parametrize(
+    ("model", "size", "params"),
+    [
+        ("PINHOLE", (0, 0), [50.0, 50.0, 20.0, 15.0]),
+        ("PINHOLE", (-40, -30), [50.0, 50.0, 20.0, 15.0]),
+        ("PINHOLE", (40, 30), [0.0, 50.0, 20.0, 15.0]),
+        ("PINHOLE", (40, 30), [50.0, -50.0, 20.0, 15.0]),
+        ("PINHOLE", (40, 30), [math.inf, 50.0, 20.0, 15.0]),
+        ("SIMPLE_PINHOLE", (40, 30), [math.nan, 20.0, 15.0]),
+        ("PINHOLE", (40, 30), [50.0, 50.0, math.nan, 15.0]),
+        ("OPENCV", (40, 30), [50.0, 50.0, 20.0, math.inf, 0.0, 0.0, 0.0, 0.0]),
+    ],
+)
+def test_colmap_cameras_need_a_positive_size_and_finite_intrinsics(
+    tmp_path: Path, model: str, size: tuple[int, int], params: list[float]
+) -> None:
+    cams = make_colmap(tmp_path, count=2)
+    write_colmap_text(tmp_path / "sparse" / "0", {3: (model, *size, params)}, [("img_00.jpg", cams[0], 3)])
+    with pytest.raises(DatasetError, match="camera 3") as err:
+        colmap_frames(tmp_path)
+    assert err.value.code == "malformed"
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize(
+    ("qvec", "tvec"),
+    [
+        ((0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 4.0)),
+        ((1.0, math.nan, 0.0, 0.0), (0.0, 0.0, 4.0)),
+        ((1.0, 0.0, 0.0, 0.0), (0.0, math.nan, 4.0)),
+        ((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -math.inf)),
+    ],
+)
+def test_colmap_poses_must_be_finite_and_rigid(
+    tmp_path: Path, qvec: tuple[float, ...], tvec: tuple[float, ...], binary: bool
+) -> None:
+    """img_00.jpg, broken here, is in the test split; the model is refused whichever split is read."""
+    make_colmap(tmp_path, count=9)
+    sparse = tmp_path / "sparse" / "0"
+    if binary:
+        write_colmap_binary(sparse, tmp_path)
+        data = bytearray((sparse / "images.bin").read_bytes())
+        # The record before the name: qvec 4d, tvec 3d, camera id i.
+        struct.pack_into("<4d3d", data, data.index(b"img_00.jpg\0") - 60, *qvec, *tvec)
+        (sparse / "images.bin").write_bytes(bytes(data))
+    else:
+        text = (sparse / "images.txt").read_text()
+        words = next(line for line in text.splitlines() if line.endswith(" img_00.jpg")).split()
+        broken = " ".join([words[0], *map(repr, qvec + tvec), *words[8:]])
+        (sparse / "images.txt").write_text(text.replace(" ".join(words), broken))
+    for split in ("train", "test"):
+        with pytest.raises(DatasetError, match="img_00.jpg") as err:
+            colmap_frames(tmp_path, split)  # type: ignore[arg-type]
+        assert err.value.code == "malformed"
+
+
 def test_colmap_binary_hostile_counts(tmp_path: Path) -> None:
     make_colmap(tmp_path, count=2)
     sparse = tmp_path / "sparse" / "0"
@@ -376,6 +458,55 @@ def test_colmap_binary_hostile_counts(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="model id 99") as err:
         colmap_frames(tmp_path)
     assert err.value.code == "unknown_camera_model"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Image paths out of the dataset
+
+
+def _aim_out(layout: str, how: str, root: Path, outside: Path) -> str:
+    """A dataset at ``root`` whose first image is read from ``outside`` by ``how``; the path as the model writes it."""
+    if layout == "nerf":
+        write_nerf(root, {"train": poses(2)})
+        written = {"absolute": str(outside), "parent": "../other/r_0", "link": "./train/r_0"}[how]
+        image = root / "train" / "r_0.png"
+        meta = json.loads((root / "transforms_train.json").read_text())
+        meta["frames"][0]["file_path"] = written
+        (root / "transforms_train.json").write_text(json.dumps(meta))
+    else:
+        cams = make_colmap(root, count=2)
+        written = {"absolute": str(outside), "parent": "../../other/r_0.png", "link": "img_00.jpg"}[how]
+        image = root / "images" / "img_00.jpg"
+        intrinsics = {1: ("PINHOLE", 40, 30, [50.0, 50.0, 20.0, 15.0])}
+        write_colmap_text(root / "sparse" / "0", intrinsics, [(written, cams[0], 1), ("img_01.jpg", cams[1], 1)])
+    if how == "link":
+        image.unlink()
+        image.symlink_to(outside)
+    return written
+
+
+@pytest.mark.parametrize("how", ["absolute", "parent", "link"])
+@pytest.mark.parametrize(("layout", "code"), [("nerf", "bad_transforms"), ("colmap", "malformed")])
+def test_image_paths_out_of_the_dataset_are_refused(tmp_path: Path, layout: str, code: str, how: str) -> None:
+    """An uploaded dataset must not read the worker's other files: an image path that leads out of the dataset
+    folder, also through a link, is refused, named as written, even where a file is there to read."""
+    outside = tmp_path / "other" / "r_0.png"
+    outside.parent.mkdir()
+    Image.fromarray(rgba(40, 30, seed=0)[..., :3]).save(outside)
+    written = _aim_out(layout, how, tmp_path / "set", outside)
+    with pytest.raises(DatasetError) as err:
+        dataset_frames(tmp_path / "set", "all")
+    assert err.value.code == code and repr(written) in err.value.message
+
+
+def test_image_paths_may_wander_inside_the_dataset(tmp_path: Path) -> None:
+    write_nerf(tmp_path, {"train": poses(2)})
+    meta = json.loads((tmp_path / "transforms_train.json").read_text())
+    meta["frames"][0]["file_path"] = "./train/../train/r_0"
+    meta["frames"][1]["file_path"] = "train/link"
+    (tmp_path / "train" / "link.png").symlink_to(tmp_path / "train" / "r_1.png")
+    (tmp_path / "transforms_train.json").write_text(json.dumps(meta))
+    assert len(dataset_frames(tmp_path, "all")) == 2
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -414,7 +545,7 @@ def test_snowmiku_colmap_matches_the_graphdeco_cameras(tmp_path: Path) -> None:
         assert cam.fx == pytest.approx(ref["fx"] * 371 / ref["height"], rel=1e-9)
     # The binary form of the same model reads the same cameras.
     (tmp_path / "sparse" / "0").mkdir(parents=True)
-    (tmp_path / "images_8").symlink_to(root / "images_8")
+    shutil.copytree(root / "images_8", tmp_path / "images_8")  # a link out of the dataset would be refused
     write_colmap_binary(tmp_path / "sparse" / "0", root)
     for a, b in zip(colmap_frames(tmp_path), frames, strict=True):
         assert a.name == b.name
