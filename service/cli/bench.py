@@ -8,7 +8,7 @@ from pathlib import Path
 
 from symgs_core.config import PRESET_NAMES
 
-from .parser import CliError
+from .parser import CliError, check_output, check_seed
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,6 +72,9 @@ def _bench(args: argparse.Namespace) -> int:
         raise CliError(f"scene files not found: {', '.join(missing)}")
     if args.sweep < 0 or args.other_views < 1 or args.peer_timeout <= 0 or args.sog_timeout <= 0:
         raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
+    check_seed("--seed", args.seed)
+    check_seed("--other-seed", args.other_seed)
+    check_output("--out", args.out, folder=True)
     overrides = {
         "iterations": args.iterations, "max_levels": args.max_levels, "train_views": args.train_views,
         "fit_views": args.fit_views, "eval_views": args.eval_views, "resolution": args.resolution,

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
-from .parser import CliError
+from .parser import CliError, check_output, check_seed
 
 HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
 
@@ -59,6 +59,7 @@ def config_from_args(args: argparse.Namespace) -> CompressConfig:
     """The job's settings from ``symgs compress`` arguments: the preset's, then each option given."""
     from symgs_core.config import CompressConfig
 
+    check_seed("--seed", args.seed)
     try:
         return CompressConfig.for_preset(
             args.preset, psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
@@ -81,6 +82,9 @@ def _compress(args: argparse.Namespace) -> int:
         raise CliError(f"scene file not found: {args.scene}")
     if args.images is not None and not args.images.is_dir():
         raise CliError(f"images folder not found: {args.images}")
+    check_output("-o", args.output)
+    check_output("--report", args.report)
+    check_output("--pictures", args.pictures, folder=True)
     config = config_from_args(args)
     with LocalProgress(Console(stderr=True), quiet=args.quiet) as progress:
         try:
@@ -91,6 +95,7 @@ def _compress(args: argparse.Namespace) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_bytes(result.archive)
     if args.report is not None:
+        args.report.parent.mkdir(parents=True, exist_ok=True)
         args.report.write_text(json.dumps(result.report.as_json(), indent=2))
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
@@ -119,6 +124,7 @@ def _decompress(args: argparse.Namespace) -> int:
         fmt = by_path(args.output)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
+    check_output("-o", args.output)
     try:
         if args.archive.name.lower().endswith(HALF_PLY):  # the benchmarks' float16 PLY peer
             from symgs_core.bench.half_ply import read_half_ply
@@ -152,6 +158,7 @@ def register_evaluate(sub: argparse._SubParsersAction) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     import torch
 
+    from symgs_core.config import CompressConfig
     from symgs_core.export import import_scene
     from symgs_core.pipeline import decompress
     from symgs_core.ply import load_scene
@@ -160,6 +167,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     for path in (args.reference, args.candidate):
         if not path.is_file():
             raise CliError(f"file not found: {path}")
+    check_seed("--seed", args.seed)
+    try:  # the bounds of compress's evaluation cameras
+        CompressConfig(eval_views=args.views, eval_resolution=args.resolution)
+    except ValueError as exc:
+        raise CliError(str(exc).replace("eval_views", "--views").replace("eval_resolution", "--resolution")) from None
     try:
         reference = load_scene(args.reference)
         is_archive = args.candidate.suffix.lower() == ".symgs"

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import os
 import sys
+from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.py; set before torch loads
 
@@ -21,6 +22,32 @@ COMMAND_MODULES = [
 
 class CliError(Exception):
     """A user-facing error: printed without a traceback, exit status 2."""
+
+
+# The seeds a job over HTTP may name (api_schemas.params.JobParams.seed): the same settings are valid everywhere.
+SEEDS = range(2**31)
+
+
+def check_seed(option: str, seed: int | None) -> None:
+    if seed is not None and seed not in SEEDS:
+        raise CliError(f"{option} must be in 0..{SEEDS[-1]}, got {seed}")
+
+
+def check_output(option: str, path: Path | None, *, folder: bool = False) -> None:
+    """Refuse an output that could not be written, before the work rather than after it (None: not asked for)."""
+    if path is None:
+        return
+    if path.exists():
+        if path.is_dir() != folder:
+            kind, other = ("a folder", "a file") if folder else ("a file", "a folder")
+            raise CliError(f"{option} {path} is {other}; {kind} is expected there")
+        target = path
+    else:  # the nearest folder above: writing makes the missing ones below it
+        target = next(p for p in path.parents if p.exists())
+        if not target.is_dir():
+            raise CliError(f"{option} {path}: {target} is a file, not a folder")
+    if not os.access(target, os.W_OK):
+        raise CliError(f"{option} {path}: {target} is not writable")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .parser import CliError
+from .parser import CliError, check_output
 
 DEFAULT_ORBIT_SIZE = 512
 DEFAULT_ORBIT_VIEWS = 8
@@ -109,7 +109,9 @@ def run_info(args: argparse.Namespace) -> int:
         print(json.dumps(info, indent=2))
         return 0
     lo, hi = info["bounds"]["min"], info["bounds"]["max"]
-    bounds = "  ".join(f"{axis} [{a:.4g}, {b:.4g}]" for axis, a, b in zip("xyz", lo, hi, strict=True)) or "empty"
+    bounds = (
+        "  ".join(f"{axis} [{a:.4g}, {b:.4g}]" for axis, a, b in zip("xyz", lo, hi, strict=True)) if lo else "empty"
+    )
     repairs = ", ".join(f"{name}: {count}" for name, count in info["repairs"].items()) or "none"
     rows = [
         ("scene", info["file"]),
@@ -201,6 +203,7 @@ def run_render(args: argparse.Namespace) -> int:
     from symgs_core.render import BackendUnavailableError, render
 
     background = _triple("--background", args.background, 0.0, 1.0, "1,1,1")
+    check_output("-o", args.output)
     scene, _ = _read(args.scene)
     camera, frame, label = _pick_camera(args, scene)
     device = "cuda" if args.backend == "gsplat" or (args.backend == "auto" and torch.cuda.is_available()) else "cpu"

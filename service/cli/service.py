@@ -131,7 +131,7 @@ def submit(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from ..client import zip_folder
-    from .parser import CliError
+    from .parser import CliError, check_output
     from .progress import follow, jobs_table
 
     if args.images is not None and len(args.scenes) != 1:
@@ -139,6 +139,7 @@ def submit(args: argparse.Namespace) -> int:
     for scene in args.scenes:
         if not scene.is_file():
             raise CliError(f"{scene} is not a file")
+    check_output("-o", args.output, folder=True)
     params = _params(args.params)
     console = Console()
     with _client(args) as client, tempfile.TemporaryDirectory() as tmp:
@@ -185,8 +186,9 @@ def status(args: argparse.Namespace) -> int:
 
 @_api_errors
 def fetch(args: argparse.Namespace) -> int:
-    from .parser import CliError
+    from .parser import CliError, check_output
 
+    check_output("-o", args.output, folder=True)
     with _client(args) as client:
         job = client.job(args.job_id)
         if job.state != "succeeded":
@@ -198,5 +200,7 @@ def fetch(args: argparse.Namespace) -> int:
 
 def demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
+    from .parser import check_output
 
+    check_output("-o", args.output, folder=True)
     return run_demo(args.output, gaussians=args.gaussians)

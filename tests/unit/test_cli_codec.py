@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import time
 
 import pytest
 
@@ -26,7 +28,8 @@ def scene_file(tmp_path_factory):
 
 
 def test_compress_decompress_evaluate(scene_file, tmp_path, capsys):
-    archive, report, decoded = tmp_path / "a.symgs", tmp_path / "r.json", tmp_path / "d.ply"
+    # a report's missing folder is made, as the archive's is
+    archive, report, decoded = tmp_path / "a.symgs", tmp_path / "reports" / "r.json", tmp_path / "d.ply"
     assert (
         main(["compress", str(scene_file), "-o", str(archive), "--report", str(report), "--max-levels", "1", *FAST])
         == 0
@@ -91,3 +94,79 @@ def test_bad_archives_give_one_line_and_exit_2_for_every_format(scene_file, tmp_
         captured = capsys.readouterr()
         assert captured.out == "" and len(captured.err.strip().splitlines()) == 1, (name, captured.err)
         assert captured.err.startswith("symgs decompress: error: ") and not output.exists(), name
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["compress", "SCENE", "-o", "adir"], "-o adir is a folder; a file is expected there"),
+        (["compress", "SCENE", "-o", "afile/x.symgs"], "-o afile/x.symgs: afile is a file, not a folder"),
+        (["compress", "SCENE", "-o", "afile/deeper/x.symgs"], "afile is a file, not a folder"),
+        (["compress", "SCENE", "-o", "x.symgs", "--report", "adir"], "--report adir is a folder"),
+        (["compress", "SCENE", "-o", "x.symgs", "--report", "afile/r.json"], "--report afile/r.json: afile is a file"),
+        (["compress", "SCENE", "-o", "x.symgs", "--pictures", "afile"], "--pictures afile is a file; a folder is"),
+        (["compress", "SCENE", "-o", "x.symgs", "--pictures", "afile/p"], "--pictures afile/p: afile is a file"),
+        (["decompress", "ARCHIVE", "-o", "adir.ply"], "-o adir.ply is a folder"),
+        (["decompress", "ARCHIVE", "-o", "afile/x.spz"], "-o afile/x.spz: afile is a file, not a folder"),
+        (["bench", "SCENE", "--out", "afile"], "--out afile is a file; a folder is expected there"),
+        (["fetch", "some-job", "-o", "afile/results"], "-o afile/results: afile is a file"),
+        (["submit", "SCENE", "-o", "afile"], "-o afile is a file"),
+        (["demo", "-o", "afile"], "-o afile is a file"),
+    ],
+)
+def test_unwritable_outputs_exit_2_before_any_work(scene_file, tmp_path, capsys, monkeypatch, argv, message):  # noqa: ANN001
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "adir.ply").mkdir()
+    (tmp_path / "afile").write_text("")
+    archive = tmp_path / "a.symgs"
+    archive.write_bytes(b"not read: the output is checked first")
+    monkeypatch.chdir(tmp_path)
+    before = sorted(tmp_path.rglob("*"))
+    argv = [str(scene_file) if a == "SCENE" else str(archive) if a == "ARCHIVE" else a for a in argv]
+    assert main([*argv, *(FAST if argv[0] == "compress" else [])]) == 2
+    captured = capsys.readouterr()
+    # one line and no progress lines: the pipeline never started
+    assert captured.out == "" and len(captured.err.splitlines()) == 1, captured.err
+    assert captured.err.startswith(f"symgs {argv[0]}: error: ") and message in captured.err, captured.err
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_an_output_in_a_folder_one_cannot_write_exits_2(scene_file, tmp_path, capsys, monkeypatch):  # noqa: ANN001
+    monkeypatch.setattr("service.cli.parser.os.access", lambda path, mode: False)  # tests may run as root
+    assert main(["compress", str(scene_file), "-o", str(tmp_path / "new" / "x.symgs"), *FAST]) == 2
+    assert f"{tmp_path} is not writable" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--views", "0"], "--views must be in 1..1000, got 0"),
+        (["--views", "-3"], "--views must be in 1..1000, got -3"),
+        (["--resolution", "100000"], "--resolution must be in 16..4096, got 100000"),
+        (["--resolution", "8"], "--resolution must be in 16..4096, got 8"),
+        (["--seed", "99999999999999999999999"], "--seed must be in 0..2147483647, got 99999999999999999999999"),
+        (["--seed", "-1"], "--seed must be in 0..2147483647, got -1"),
+    ],
+)
+def test_evaluate_settings_out_of_range_exit_2(scene_file, capsys, extra, message):  # noqa: ANN001
+    assert main(["evaluate", str(scene_file), str(scene_file), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err == f"symgs evaluate: error: {message}\n", err
+
+
+@pytest.mark.parametrize("seed", ["99999999999999999999999", "-1", str(2**31)])
+def test_compress_seed_out_of_range_exits_2(scene_file, tmp_path, capsys, seed):  # noqa: ANN001
+    output = tmp_path / "x.symgs"
+    assert main(["compress", str(scene_file), "-o", str(output), "--seed", seed, *FAST]) == 2
+    assert capsys.readouterr().err == f"symgs compress: error: --seed must be in 0..2147483647, got {seed}\n"
+    assert not output.exists()
+
+
+def test_the_command_exits_2_without_a_traceback_on_an_output_folder(scene_file, tmp_path):  # noqa: ANN001
+    from service.cli.stack import SYMGS
+
+    start = time.monotonic()
+    done = subprocess.run([*SYMGS, "compress", str(scene_file), "-o", str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr == f"symgs compress: error: -o {tmp_path} is a folder; a file is expected there\n"
+    assert time.monotonic() - start < 30  # the compression (minutes at the default preset) never ran

@@ -74,6 +74,13 @@ def test_info_text_reports_repairs(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "ignored     nx ny nz\n" in out
 
 
+def test_info_text_on_a_scene_of_no_gaussians(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    save_scene(GaussianScene.empty(), tmp_path / "zero.ply")
+    code, out, err = run(["info", str(tmp_path / "zero.ply")], capsys)
+    assert code == 0 and err == ""
+    assert "gaussians   0\n" in out and "bounds      empty\n" in out
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [
@@ -160,6 +167,30 @@ def test_render_errors_exit_2(
     code, _, err = run(["render", str(path), *extra, "-o", str(tmp_path / "x.png")], capsys)
     assert code == 2 and message in err, err
     assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize(
+    ("output", "message"),
+    [
+        ("adir", "-o adir is a folder; a file is expected there"),
+        ("afile/x.png", "-o afile/x.png: afile is a file, not a folder"),
+    ],
+)
+def test_render_unwritable_output_exit_2_before_rendering(
+    scene_file: tuple[GaussianScene, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    output: str,
+    message: str,
+) -> None:
+    _, path = scene_file
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "afile").write_text("")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("symgs_core.render.render", lambda *a, **k: pytest.fail("rendered"))
+    code, out, err = run(["render", str(path), "--orbit", "0", "-o", output], capsys)
+    assert code == 2 and out == "" and err == f"symgs render: error: {message}\n"
 
 
 def test_render_missing_scene_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
