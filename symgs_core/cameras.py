@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
 COORDINATE_CONVENTION = "opencv: world-to-camera extrinsics, camera x right, y down, z forward"
+NEAR_PLANE = 0.01  # camera-space depth below which Gaussians are not drawn (gsplat's default)
+# Cameras placed around a scene keep their near plane within this share of its radius: a scene in tiny units (a
+# small object in metres, or smaller) would otherwise lie behind it and render blank.
+NEAR_SHARE = 0.1
 
 
 @dataclass
@@ -16,7 +20,7 @@ class Camera:
     """A pinhole camera.
 
     R [3, 3] and t [3] map world points to camera space: x_cam = R x_world + t.
-    fx, fy, cx, cy in pixels; width, height in pixels.
+    fx, fy, cx, cy in pixels; width, height in pixels; ``near`` the depth below which nothing is drawn.
     """
 
     R: Tensor
@@ -28,6 +32,7 @@ class Camera:
     width: int
     height: int
     name: str = ""
+    near: float = NEAR_PLANE
 
     def __post_init__(self) -> None:
         if tuple(self.R.shape) != (3, 3) or tuple(self.t.shape) != (3,):
@@ -36,6 +41,8 @@ class Camera:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
         if not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not 0.0 < self.near < math.inf:
+            raise ValueError(f"the near plane must be positive and finite, got {self.near}")
 
     @property
     def K(self) -> Tensor:
@@ -60,14 +67,13 @@ class Camera:
         return -self.R.T @ self.t
 
     def to(self, device: torch.device | str) -> Camera:
-        return Camera(
-            self.R.to(device), self.t.to(device), self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.name
-        )
+        return replace(self, R=self.R.to(device), t=self.t.to(device))
 
     def resized(self, width: int, height: int) -> Camera:
         """The same view at another resolution (intrinsics scaled)."""
         sx, sy = width / self.width, height / self.height
-        return Camera(self.R, self.t, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.name)
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width,
+                       height=height)  # fmt: skip
 
     @staticmethod
     def look_at(
@@ -97,6 +103,11 @@ class Camera:
             raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
         fx = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
         return Camera(R.float(), t.float(), fx, fx, width / 2.0, height / 2.0, width, height, name)
+
+
+def near_for(radius: float) -> float:
+    """The near plane of cameras placed around a scene of ``radius``."""
+    return min(NEAR_PLANE, NEAR_SHARE * radius)
 
 
 def scene_bounds(means: Tensor) -> tuple[Tensor, float]:
@@ -136,9 +147,8 @@ def orbit_cameras(
         # Near the poles the world up is parallel to the view: use another up there.
         cam_up = up_t if abs(float(d @ up_t)) < 0.99 else torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
         eye = center.to(torch.float64) + distance * d
-        cams.append(
-            Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}")
-        )
+        camera = Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}")
+        cams.append(replace(camera, near=near_for(radius)))
     return cams
 
 

@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from .cameras import Camera, fibonacci_directions, scene_bounds
+from .cameras import Camera, fibonacci_directions, near_for, scene_bounds
 from .metrics import mse_to_psnr, ssim
 from .report import CameraSet, Fidelity
 from .scene import GaussianScene
@@ -113,7 +113,8 @@ def viewer_cameras(
     for i, d in enumerate(directions):
         distance = (near + (far - near) * ((0.5 + i * golden) % 1.0)) * radius
         up = turn[:, 2] if abs(float(d @ turn[:, 2])) < 0.99 else turn[:, 1]
-        cams.append(Camera.look_at(c + distance * d, c, up, FOV_DEG, resolution, resolution, name=f"{name}_{i:03d}"))
+        camera = Camera.look_at(c + distance * d, c, up, FOV_DEG, resolution, resolution, name=f"{name}_{i:03d}")
+        cams.append(replace(camera, near=near_for(radius)))
     return cams
 
 

@@ -14,7 +14,7 @@ from torch import Tensor
 from ..cameras import Camera
 from ..scene import GaussianScene
 from ..sh import num_coeffs
-from .projection import LOW_PASS, NEAR_PLANE
+from .projection import LOW_PASS
 from .rasterize import TILE_SIZE
 from .result import RenderResult
 
@@ -58,7 +58,7 @@ def render_gsplat(scene: GaussianScene, camera: Camera, background: Tensor, sh_d
         Ks=camera.K.to(device=device, dtype=dtype)[None],  # [1, 3, 3]
         width=camera.width,
         height=camera.height,
-        near_plane=NEAR_PLANE,
+        near_plane=camera.near,
         eps2d=LOW_PASS,
         sh_degree=sh_degree,
         packed=False,

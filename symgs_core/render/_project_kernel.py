@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..sh import C0, C1, C2, C3
-from .projection import FOV_CLAMP, LOW_PASS, NEAR_PLANE
+from .projection import FOV_CLAMP, LOW_PASS
 
 _C2 = np.array(C2, dtype=np.float32)
 _C3 = np.array(C3, dtype=np.float32)
@@ -31,7 +31,7 @@ def project_kernel(
     rot: np.ndarray,  # [3, 3] world to camera
     trans: np.ndarray,  # [3]
     center: np.ndarray,  # [3] camera centre
-    fx: float, fy: float, cx: float, cy: float, width: int, height: int, c2: np.ndarray, c3: np.ndarray,
+    fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, c2: np.ndarray, c3: np.ndarray,
     means2d: np.ndarray, conics: np.ndarray, depths: np.ndarray, radii: np.ndarray, colors: np.ndarray,
     opacity: np.ndarray,
 ) -> None:  # fmt: skip
@@ -42,7 +42,7 @@ def project_kernel(
         x = rot[0, 0] * means[i, 0] + rot[0, 1] * means[i, 1] + rot[0, 2] * means[i, 2] + trans[0]
         y = rot[1, 0] * means[i, 0] + rot[1, 1] * means[i, 1] + rot[1, 2] * means[i, 2] + trans[1]
         z = rot[2, 0] * means[i, 0] + rot[2, 1] * means[i, 1] + rot[2, 2] * means[i, 2] + trans[2]
-        in_front = z > NEAR_PLANE
+        in_front = z > near
         if not in_front:
             z = np.float32(1.0)
         depths[i] = z
@@ -129,5 +129,6 @@ def project_fast(means, quats, scales, opacities, dc, rest, degree, camera):  # 
     center = np.ascontiguousarray(camera.center.detach().cpu().numpy(), dtype=f32)
     project_kernel(means, quats, scales, opacities, dc, rest, (degree + 1) ** 2, rot, trans, center, f32(camera.fx),
                    f32(camera.fy),
-                   f32(camera.cx), f32(camera.cy), camera.width, camera.height, _C2, _C3, *outs)  # fmt: skip
+                   f32(camera.cx), f32(camera.cy), camera.width, camera.height, float(camera.near), _C2, _C3,
+                   *outs)  # fmt: skip
     return outs

@@ -16,7 +16,6 @@ from ..cameras import Camera
 from ..scene import GaussianScene
 from ..sh import num_coeffs, sh_to_rgb
 
-NEAR_PLANE = 0.01
 # Added to the 2D covariance's diagonal: every splat covers at least about a pixel (3DGS's low-pass filter).
 LOW_PASS = 0.3
 # The Jacobian is evaluated with x/z and y/z clamped to this multiple of the half field of view, as 3DGS does, so
@@ -63,7 +62,7 @@ def project(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
     rot = camera.R.to(device=device, dtype=dtype)
     p = scene.means @ rot.T + camera.t.to(device=device, dtype=dtype)  # [N, 3] camera space
     x, y, z = p.unbind(-1)
-    in_front = z.detach() > NEAR_PLANE
+    in_front = z.detach() > camera.near
     z = torch.where(in_front, z, torch.ones_like(z))  # placeholder keeps culled rows finite in both passes
 
     lim_x = FOV_CLAMP * 0.5 * camera.width / camera.fx

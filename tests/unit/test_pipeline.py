@@ -298,6 +298,22 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
 
 
+def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
+    """Cameras placed around a scene bring their near plane along: a scene a million times smaller renders the same
+    images, not blank ones that any archive would match "losslessly"."""
+    scene = synthetic_scene("global", n=600, seed=1, sh_degree=0).scene
+    tiny = scene.with_(means=scene.means * 1e-6, scales=scene.scales + math.log(1e-6))
+    sets = [self_supervised_views(s, train=0, fit=3, eval=0, resolution=32, eval_resolution=32,
+                                  background=torch.zeros(3)) for s in (scene, tiny)]  # fmt: skip
+    for (_, target, _), (_, tiny_target, _) in zip(sets[0].fit, sets[1].fit):
+        assert target.max() > 0.1 and torch.allclose(tiny_target, target, atol=1e-3)
+    config = CompressConfig.for_preset("balanced", fit_views=3, eval_views=2, eval_resolution=32, max_levels=0,
+                                       device="cpu", pictures=False)  # fmt: skip
+    at_size, small = (compress(s, config=config).report for s in (scene, tiny))
+    assert math.isfinite(small.fidelity.worst) and small.fidelity.worst == pytest.approx(at_size.fidelity.worst, abs=1)
+    assert small.gaussians.stored == pytest.approx(at_size.gaussians.stored, rel=0.1)
+
+
 def test_photographs_on_a_white_backdrop_are_matched_on_it(tmp_path):
     """Photographs without alpha carry their backdrop (NeRF-Synthetic's white): the job renders the upload on it, so
     it scores on white as on black, not a few dB for every pixel around the object."""
