@@ -62,6 +62,14 @@ def budget_for_floor(floor: float, nominal: float) -> float:
     return 10.0 * math.log10(1.0 + 10.0 ** ((nominal - floor) / 10.0))
 
 
+# Integer settings and their bounds; seeds as every door takes them (the CLI's --seed, the API's seed).
+_INTEGER_RANGES = (
+    ("max_levels", 0, 16), ("iterations", 0, 100_000),
+    ("train_views", 1, 1000), ("fit_views", 1, 1000), ("eval_views", 1, 1000),
+    ("resolution", 16, 4096), ("eval_resolution", 16, 4096), ("seed", 0, 2**31 - 1),
+)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class CompressConfig:
     """What a compression job may spend and must keep. Build it with ``for_preset``.
@@ -115,16 +123,19 @@ class CompressConfig:
         budget = self.budget
         if not (math.isfinite(budget) and 0 <= budget <= 60):
             raise ValueError(f"psnr_budget must be a number of dB in 0..60, got {budget}")
-        if not 0 <= self.max_levels <= 16:
-            raise ValueError(f"max_levels must be in 0..16, got {self.max_levels}")
-        if not 0 <= self.iterations <= 100_000:
-            raise ValueError(f"iterations must be in 0..100000, got {self.iterations}")
-        for name in ("train_views", "fit_views", "eval_views"):
-            if not 1 <= getattr(self, name) <= 1000:
-                raise ValueError(f"{name} must be in 1..1000, got {getattr(self, name)}")
-        for name in ("resolution", "eval_resolution"):
-            if not 16 <= getattr(self, name) <= 4096:
-                raise ValueError(f"{name} must be in 16..4096, got {getattr(self, name)}")
+        # PSNR of images in 0..1 is never below 0 dB, and photographs stored at 8 bits show at most about 59 dB.
+        if not (isinstance(self.nominal_psnr, (int, float)) and 0 < self.nominal_psnr <= 60):
+            raise ValueError(f"nominal_psnr must be a number of dB in (0, 60], got {self.nominal_psnr}")
+        for name, low, high in _INTEGER_RANGES:
+            value = getattr(self, name)
+            if not (isinstance(value, int) and low <= value <= high):
+                raise ValueError(f"{name} must be in {low}..{high}, got {value}")
+        if not isinstance(self.detect, dict):
+            raise ValueError(f"detect must be a dict of DetectConfig settings, got {self.detect!r}")
+        if self.detect:  # imported only then: the package imports torch, which the API process (never given any) lacks
+            from .detect.config import DetectConfig
+
+            DetectConfig.with_overrides(self.detect)
 
     @classmethod
     def for_preset(cls, preset: str | None = None, **overrides: Any) -> CompressConfig:

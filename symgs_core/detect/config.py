@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -94,3 +96,20 @@ class DetectConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if self.min_gaussians < 2:
             raise ValueError(f"min_gaussians must be >= 2, got {self.min_gaussians!r}")
+
+    @classmethod
+    def with_overrides(cls, overrides: Mapping[str, Any]) -> DetectConfig:
+        """The defaults with ``overrides``; ValueError names an unknown setting (and lists the known ones), a value of
+        the wrong type or out of range."""
+        known = {f.name: str(f.type) for f in fields(cls)}  # "int", "float" or "float | None"
+        unknown = sorted(map(str, set(overrides) - set(known)))
+        if unknown:
+            raise ValueError(f"unknown detect settings {', '.join(unknown)}; known: {', '.join(known)}")
+        for name, value in overrides.items():
+            kind = known[name]
+            if value is None and kind.endswith("| None"):
+                continue
+            if isinstance(value, bool) or not isinstance(value, int if kind == "int" else (int, float)):
+                wanted = {"int": "an integer", "float": "a number"}.get(kind, "a number or None")
+                raise ValueError(f"detect setting {name} must be {wanted}, got {value!r}")
+        return cls(**overrides)

@@ -60,7 +60,9 @@ def _normalize(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray
     idx = np.arange(len(values)) // CHUNK
     lo, hi = lo[idx], hi[idx]
     span = hi - lo
-    t = np.where(span < 1e-5, 0.0, (values - lo) / np.where(span < 1e-5, 1.0, span))
+    # Only an empty range is degenerate: the float32 bounds hold any other, so a scene in tiny units keeps its
+    # shape (PlayCanvas' writers store 0 below a span of 1e-5, collapsing such a scene to one point per chunk).
+    t = np.where(span > 0, (values - lo) / np.where(span > 0, span, 1.0), 0.0)
     return np.clip(t, 0.0, 1.0)
 
 

@@ -16,7 +16,8 @@ Where the writer departs from the reference tool's choices, within the format, t
     such as the donut costs more than anything else (49 dB against the decode it was written from). We give
     positions a step of at most 2^-18 of the scene's extent (a quarter of the balanced preset's starting position
     step), never coarser than 2^-12 and within what 24 bits hold at the scene's reach: the donut's export goes to
-    21 bits and 53 dB, for 15% more bytes (BENCHMARKS.md, "Exports").
+    21 bits and 53 dB, for 15% more bytes (BENCHMARKS.md, "Exports"). A scene the 24 bits cannot give 2^10 steps
+    across (smaller than 2^-14, or small and far from the origin) is refused, as one beyond their reach is.
   * SH at 8 bits: the reference rounds degree 1 to 5 bits and higher bands to 4, a step of 1/8 against the archive's
     SH steps of 1/32 or finer: 41 dB on the kacytran scene (SH 3) where 8 bits give 52 dB for 0.5% more bytes, since
     the decoded SH take few distinct values either way. ``sh1_bits``/``sh_rest_bits`` still choose.
@@ -99,6 +100,9 @@ def _quantize_sh(x: np.ndarray, bits: int) -> np.ndarray:
 FINEST_RELATIVE_BITS = 18  # the position step is at most 2^-18 of the scene's extent
 REFERENCE_BITS = 12  # the reference writer's fixed choice: never coarser than it
 MAX_BITS = 24  # readers compute 1 << bits in 32-bit integers: stay well inside
+# The scene's extent must span at least 2^10 steps: no coarser than any other export resolves it (the compressed
+# PLY's 10-bit axis of a chunk's box). Below that, distinct positions merge into a few points.
+MIN_SPAN_BITS = 10
 
 
 def _fractional_bits(means: np.ndarray) -> int:
@@ -128,6 +132,10 @@ def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 8, sh_r
     frac = _fractional_bits(means)
     if means.size and float(np.abs(means).max()) >= (1 << 23) - 1:
         raise ValueError(f"spz: positions up to {float(np.abs(means).max()):g} do not fit its 24-bit fixed point")
+    extent = float(np.ptp(means, axis=0).max()) if means.size else 0.0
+    if 0 < extent * (1 << frac) < 1 << MIN_SPAN_BITS:
+        step = 2.0**-frac
+        raise ValueError(f"spz: positions spanning {extent:g} do not fit its 24-bit fixed point (a step of {step:g})")
     fixed = np.round(means * (1 << frac)).astype(np.int64) & 0xFFFFFF
     positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N, 3, 3]
     alphas = _u8(255.0 * (0.5 + 0.5 * np.tanh(0.5 * t["opacities"])))  # the sigmoid, without overflow

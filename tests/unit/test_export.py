@@ -208,3 +208,28 @@ def test_decompress_command_writes_the_format_the_extension_names(tmp_path, caps
     assert import_scene(tmp_path / "out.ply").means.equal(scene.means)
     assert main(["decompress", str(archive), "-o", str(tmp_path / "out.splat")]) == 2
     assert "unsupported export format" in capsys.readouterr().err
+
+
+def test_a_scene_in_tiny_units_is_refused_by_spz_and_kept_by_the_compressed_ply(tmp_path, capsys) -> None:  # noqa: ANN001
+    """At 1e-9 units no step of 24 bits resolves the scene: `.spz` refuses it as it does one beyond its reach (it
+    wrote every Gaussian at one point); the compressed PLY's float32 chunk bounds hold it (it kept 6 points)."""
+    from service.cli import main
+    from symgs_core.codec import ArchiveContents, encode_archive
+
+    scene = scene_for_export(n=600, degree=1)
+    tiny = GaussianScene(
+        means=scene.means * 1e-9, quats=scene.quats, scales=scene.scales + math.log(1e-9),
+        opacities=scene.opacities, sh_dc=scene.sh_dc, sh_rest=scene.sh_rest,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="spz: positions spanning .* do not fit its 24-bit fixed point"):
+        write_spz(tiny)
+    assert len(read_spz(write_spz(scene))) == 600  # a scene in ordinary units still exports
+    back = read_compressed_ply(write_compressed_ply(tiny))
+    ref = tiny.select(compressed_ply_order(tiny))
+    assert len(torch.unique(back.means, dim=0)) == 600
+    assert (back.means - ref.means).abs().max() <= 6e-9 / 1023  # within a chunk's box at 10 bits, at worst
+    archive = tmp_path / "tiny.symgs"
+    archive.write_bytes(encode_archive(ArchiveContents(tiny, [], torch.zeros(600, 0, dtype=torch.bool), {})))
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "t.spz")]) == 2
+    assert "do not fit its 24-bit fixed point" in capsys.readouterr().err
+    assert main(["decompress", str(archive), "-o", str(tmp_path / "t.compressed.ply")]) == 0
