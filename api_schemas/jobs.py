@@ -111,7 +111,8 @@ class Job(BaseModel):
     stage: str | None = Field(None, description="pipeline stage: load, views, detect, optimize, evaluate, encode, ...")
     level: int | None = Field(None, description="mirror level being worked on")
     progress: float = Field(ge=0, le=1)
-    message: str = ""
+    message: str = Field("", description="what the job is doing; once it has succeeded, the export formats its scene "
+                         "could not be written in and why (empty when every one was)")
     eta_s: float | None = Field(
         None, ge=0, description="estimated seconds until a running job ends, from its progress so far; null when "
         "unknown or not running",

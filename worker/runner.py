@@ -133,7 +133,8 @@ def headline(report: Report) -> tuple[list[MirrorSummary], JobMetrics]:
     return mirrors, metrics
 
 
-def _write_results(storage: Storage, record: JobRecord, result: CompressResult) -> None:
+def _write_results(storage: Storage, record: JobRecord, result: CompressResult) -> str:
+    """Write the job's files; returns what could not be written and why ("" when every export was)."""
     from symgs_core.export.formats import EXPORTS
     from symgs_core.pipeline import decompress
 
@@ -146,8 +147,13 @@ def _write_results(storage: Storage, record: JobRecord, result: CompressResult) 
         write(f"charts/{name}.png", png)
     # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
     decoded = decompress(result.archive)
+    skipped = []
     for fmt in EXPORTS:
-        write(fmt.artifact, fmt.write(decoded))
+        try:
+            write(fmt.artifact, fmt.write(decoded))
+        except ValueError as exc:  # a scene some format cannot hold (its fixed point, its ranges): the rest stand
+            skipped.append(f"{fmt.artifact} not written: {exc}")
+    return "; ".join(skipped)
 
 
 def run_job(
@@ -225,11 +231,11 @@ def _run_leased(
                                              seconds=settings.peer_seconds, work=folder / "peers"))  # fmt: skip
     if heartbeat.lost.is_set():
         return "lost"  # the worker that took the job over writes the same files
-    _write_results(storage, record, result)
+    skipped = _write_results(storage, record, result)
     mirrors, metrics = headline(result.report)
     artifacts = storage.artifact_names(owner=record.owner, job_id=job_id)
     done = store.transition(
-        job_id, "succeeded", stage="done", progress=1.0, message="", artifacts=artifacts,
+        job_id, "succeeded", stage="done", progress=1.0, message=skipped, artifacts=artifacts,
         mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump(),
     )  # fmt: skip
     if done is not None and done.finished_at is not None:
