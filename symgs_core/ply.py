@@ -5,11 +5,14 @@ graphdeco order: ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3
 
 Reading accepts any property order, extra properties (ignored, reported) and float64 values. The header is
 checked against the file size before the body is read, so a header that claims more Gaussians than the file
-holds is refused without allocating for them. Repairs, counted in the report:
-  * ``+inf`` / ``-inf`` opacity logits are clamped to logit(1 - 1/512) / logit(1/512);
+holds is refused without allocating for them; so is a file with data after the rows its header declares. Repairs,
+counted in the report:
+  * ``+inf`` / ``-inf`` opacity logits, and finite ones beyond +-88 (whose exp overflows float32 as the infinities'
+    does), are clamped to logit(1 - 1/512) / logit(1/512);
   * zero quaternions (norm below 1e-12) become the identity (1, 0, 0, 0).
 Unnormalised quaternions are normal in graphdeco files and are kept as stored. NaN anywhere, or an infinity in
-any other property, is an error.
+any other property, is an error (``non_finite``); so is a finite value the float32 pipeline cannot carry
+(``out_of_range``, ``LIMITS``). ``checked_scene`` applies the same rules to a scene built in memory.
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ from .scene import SH_REST_COUNT, GaussianScene
 # logit(1 - 1/512) and logit(1/512): the opacity range of an 8-bit alpha that avoids 0 and 1.
 OPACITY_LOGIT_MAX = float(np.float32(math.log(511.0)))
 OPACITY_LOGIT_MIN = -OPACITY_LOGIT_MAX
+# Largest magnitude of each attribute (opacity: beyond it, clamped). Log-scales: exp(+-88) is a finite, non-zero
+# float32 standard deviation (log of the float32 maximum: 88.7). Positions and rotations: squares of sums of a few
+# stay finite in float32 (distances, quaternion norms). Colour coefficients: a thousand times what a renderer can
+# show, well inside the codec's colour grids (2^24 cells of its finest steps, about 1/512, reach +-32768).
+EXP_LIMIT = 88.0
+LIMITS = {"means": 1e18, "quats": 1e18, "scales": EXP_LIMIT, "sh_dc": 4096.0, "sh_rest": 4096.0}
+
 
 @dataclass
 class PlyReport:
@@ -72,6 +82,29 @@ def _vertex_rows(path: Path, header: PlyHeader) -> np.ndarray | None:
     raise AssertionError("the header has a vertex element")
 
 
+def _parsed_rows(path: Path, header: PlyHeader) -> np.ndarray:
+    """The vertex rows as plyfile parses them (ascii files, files with lists), which stops after the rows the header
+    declares: the file must end there (blank space aside, in ascii), as a binary file's length must match."""
+    from plyfile import PlyData, PlyParseError
+
+    text = header.format == "ascii"
+    try:
+        with open(path, encoding="ascii") if text else open(path, "rb") as f:
+            rows = PlyData.read(f)["vertex"].data
+            end = "" if text else b""
+            extra = any(chunk.strip() if text else chunk for chunk in iter(lambda: f.read(1 << 16), end))
+    except (PlyParseError, ValueError, EOFError) as exc:
+        code = "truncated" if "early end" in str(exc).lower() or isinstance(exc, EOFError) else "malformed"
+        raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
+    if extra:
+        raise PlyError(
+            "trailing_data",
+            f"{path.name}: data follows the rows the header describes: it declares {header.count} Gaussians, "
+            "fewer than the file carries",
+        )
+    return rows
+
+
 def _float_matrix(rows: np.ndarray) -> np.ndarray | None:
     """The rows as a float32 matrix [N, P] (a view) when every property is a float32; None otherwise."""
     kinds = {rows.dtype.fields[name][0] for name in rows.dtype.names or ()}  # type: ignore[index]
@@ -96,57 +129,98 @@ def _fill(out: np.ndarray, rows: np.ndarray, matrix: np.ndarray | None, names: l
         out[...] = matrix[:, index]
 
 
-def _to_scene(rows: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianScene, dict[str, int]]:
-    """Scene from the structured vertex rows, after the finiteness checks and repairs: each attribute is copied once,
-    straight into the native float32 array its tensor wraps (float32 input keeps its exact bits)."""
-    n, k = len(rows), len(rest) // 3
-    groups = {
+def _columns(rest: list[str]) -> dict[str, list[str]]:
+    """The property of each column of each attribute's matrix [N, C]; ``sh_rest`` is [N, K, 3] flattened."""
+    k = len(rest) // 3
+    return {
         "means": list(GEOMETRY), "sh_dc": list(DC), "opacities": ["opacity"], "scales": list(SCALES),
-        "quats": list(ROTATIONS),
+        "quats": list(ROTATIONS), "sh_rest": [rest[c * k + j] for j in range(k) for c in range(3)],
     }  # fmt: skip
-    matrix = _float_matrix(rows)
-    values = {name: np.empty((n, len(names)), np.float32) for name, names in groups.items()}
-    for name, names in groups.items():
-        _fill(values[name], rows, matrix, names)
-    sh_rest = np.empty((n, k, 3), np.float32)
-    for c in range(3):  # f_rest is channel-major: f_rest_{c*K + j} is coefficient j+1 of channel c
-        _fill(sh_rest[:, :, c], rows, matrix, rest[c * k : (c + 1) * k])
-    values["sh_rest"] = sh_rest.reshape(n, 3 * k)
-    groups["sh_rest"] = [rest[c * k + j] for j in range(k) for c in range(3)]
 
+
+def _checked(values: dict[str, np.ndarray], groups: dict[str, list[str]], name: str) -> dict[str, int]:
+    """Apply the reader's rules to the float32 attribute matrices ``values`` (``_columns``' layout): PlyError names
+    the properties refused; repaired attributes are replaced, never written into (they may be a caller's tensors).
+    Returns the repairs made."""
+    rest = [f"f_rest_{i}" for i in range(len(groups["sh_rest"]))]
+    order = [*GEOMETRY, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
     # min and max carry NaN and the infinities through without a temporary array: the counts only when they hit.
-    suspect = [name for name, v in values.items() if v.size and not np.isfinite([v.min(), v.max()]).all()]
+    bounds = {attr: (float(v.min()), float(v.max())) for attr, v in values.items() if v.size}
     counts: dict[str, int] = {}
-    for name in suspect:  # infinite opacities are repaired below
-        invalid = np.isnan(values[name]) if name == "opacities" else ~np.isfinite(values[name])
-        counts.update(zip(groups[name], invalid.sum(axis=0).tolist(), strict=True))
+    for attr, (lo, hi) in bounds.items():
+        if not math.isfinite(lo) or not math.isfinite(hi):  # infinite opacities are repaired below
+            invalid = np.isnan(values[attr]) if attr == "opacities" else ~np.isfinite(values[attr])
+            counts.update(zip(groups[attr], invalid.sum(axis=0).tolist(), strict=True))
     if any(counts.values()):
-        order = [*GEOMETRY, *DC, *rest, "opacity", *SCALES, *ROTATIONS]
         where = ", ".join(f"{prop} ({counts[prop]} values)" for prop in order if counts.get(prop))
-        raise PlyError("non_finite", f"{path.name}: NaN or infinite values in {where}")
+        raise PlyError("non_finite", f"{name}: NaN or infinite values in {where}")
+    limit_of: dict[str, float] = {}
+    for attr, limit in LIMITS.items():
+        lo, hi = bounds.get(attr, (0.0, 0.0))
+        if max(-lo, hi) > limit:
+            beyond = (np.abs(values[attr]) > limit).sum(axis=0).tolist()
+            counts.update(zip(groups[attr], beyond, strict=True))
+            limit_of.update(dict.fromkeys(groups[attr], limit))
+    if any(counts.values()):
+        where = ", ".join(
+            f"{prop} ({counts[prop]} values beyond +-{limit_of[prop]:g})" for prop in order if counts.get(prop)
+        )
+        raise PlyError("out_of_range", f"{name}: values out of range in {where}")
 
     repairs: dict[str, int] = {}
-    opacity = values["opacities"].reshape(n)
-    for repair, infinity, limit in (
-        ("opacity_pos_inf_clamped", np.inf, OPACITY_LOGIT_MAX),
-        ("opacity_neg_inf_clamped", -np.inf, OPACITY_LOGIT_MIN),
+    for repair, hit, limit in (
+        ("opacity_pos_inf_clamped", values["opacities"] > EXP_LIMIT, OPACITY_LOGIT_MAX),
+        ("opacity_neg_inf_clamped", values["opacities"] < -EXP_LIMIT, OPACITY_LOGIT_MIN),
     ):
-        hit = opacity == infinity
         if hit.any():
-            opacity[hit] = limit
+            values["opacities"] = np.where(hit, np.float32(limit), values["opacities"])
             repairs[repair] = int(hit.sum())
     quats = values["quats"]
     # Only rows whose every component is below 1e-12 can have a norm below it: the exact test runs on those alone.
     small = np.flatnonzero((np.abs(quats) < 1e-12).all(axis=1))
     zero = small[np.linalg.norm(quats[small].astype(np.float64), axis=1) < 1e-12]
     if len(zero):
+        values["quats"] = quats = quats.copy()
         quats[zero] = (1.0, 0.0, 0.0, 0.0)
         repairs["zero_quaternion_set_to_identity"] = len(zero)
+    return repairs
 
-    values["opacities"] = opacity
-    values["sh_rest"] = values["sh_rest"].reshape(n, k, 3)
-    scene = GaussianScene(**{name: torch.from_numpy(v) for name, v in values.items()})
-    return scene, repairs
+
+def _scene(values: dict[str, np.ndarray], n: int, k: int) -> GaussianScene:
+    """The scene whose attributes are the matrices ``values`` (``_columns``' layout), sharing their memory."""
+    shapes = {"opacities": (n,), "sh_rest": (n, k, 3)}
+    return GaussianScene(**{attr: torch.from_numpy(v.reshape(shapes.get(attr, v.shape))) for attr, v in values.items()})
+
+
+def _to_scene(rows: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianScene, dict[str, int]]:
+    """Scene from the structured vertex rows, after the checks and repairs: each attribute is copied once, straight
+    into the native float32 array its tensor wraps (float32 input keeps its exact bits)."""
+    n, k = len(rows), len(rest) // 3
+    groups = _columns(rest)
+    matrix = _float_matrix(rows)
+    values = {attr: np.empty((n, len(names)), np.float32) for attr, names in groups.items() if attr != "sh_rest"}
+    for attr, v in values.items():
+        _fill(v, rows, matrix, groups[attr])
+    sh_rest = np.empty((n, k, 3), np.float32)
+    for c in range(3):  # f_rest is channel-major: f_rest_{c*K + j} is coefficient j+1 of channel c
+        _fill(sh_rest[:, :, c], rows, matrix, rest[c * k : (c + 1) * k])
+    values["sh_rest"] = sh_rest.reshape(n, 3 * k)
+    repairs = _checked(values, groups, path.name)
+    return _scene(values, n, k), repairs
+
+
+def checked_scene(scene: GaussianScene, name: str = "scene") -> tuple[GaussianScene, dict[str, int]]:
+    """``scene`` under the rules a file's values are read by: float32 on the CPU (other float types converted, as a
+    double property is), checked and repaired as ``read_scene`` does; PlyError as for a file. Returns the repairs."""
+    n, k = len(scene), scene.sh_rest.shape[1]
+    groups = _columns([f"f_rest_{i}" for i in range(3 * k)])
+    values: dict[str, np.ndarray] = {}
+    for attr, t in scene.tensors().items():
+        if not t.is_floating_point():
+            raise PlyError("unsupported_format", f"{name}: {attr} is {t.dtype}, expected float")
+        values[attr] = t.detach().to("cpu", torch.float32).numpy().reshape(n, len(groups[attr]))
+    repairs = _checked(values, groups, name)
+    return _scene(values, n, k), repairs
 
 
 def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None) -> tuple[GaussianScene, PlyReport]:
@@ -160,13 +234,7 @@ def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None
 
     rows = _vertex_rows(path, header)
     if rows is None:
-        from plyfile import PlyData, PlyParseError
-
-        try:
-            rows = PlyData.read(str(path))["vertex"].data
-        except (PlyParseError, ValueError, EOFError) as exc:
-            code = "truncated" if "early end" in str(exc).lower() or isinstance(exc, EOFError) else "malformed"
-            raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
+        rows = _parsed_rows(path, header)
 
     scene, repairs = _to_scene(rows, rest, path)
     del rows  # unmaps the file

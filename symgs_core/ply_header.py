@@ -36,7 +36,7 @@ class PlyError(ValueError):
     """A PLY file that cannot be read as a Gaussian scene; ``code`` says why in a machine-readable word.
 
     Codes: not_ply, unsupported_format, malformed, missing_property, bad_sh_count, truncated, trailing_data,
-    non_finite, too_many_gaussians, empty_scene.
+    non_finite, out_of_range, too_many_gaussians, empty_scene.
     """
 
     def __init__(self, code: str, message: str) -> None:
@@ -146,12 +146,22 @@ def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
 
 def _rest_names(names: list[str], name: str) -> tuple[str, ...]:
     rest = [n for n in names if n.startswith("f_rest_")]
-    if set(rest) != {f"f_rest_{i}" for i in range(len(rest))} or len(rest) not in SH_DEGREE_OF_REST:
+    expected = [f"f_rest_{i}" for i in range(len(rest))]
+    given, wanted = set(rest), set(expected)
+    if given != wanted:  # a gap or a stray name: the count alone would name a degree the file may well have
+        missing = [n for n in expected if n not in given]
+        stray = [n[:40] for n in rest if n not in wanted]
         raise PlyError(
             "bad_sh_count",
-            f"{name}: {len(rest)} f_rest properties match no SH degree (expected 0, 9, 24 or 45, numbered from 0)",
+            f"{name}: the {len(rest)} f_rest properties are not numbered 0..{len(rest) - 1}: "
+            f"{', '.join(missing[:3])} missing, {', '.join(stray[:3])} in their place",
         )
-    return tuple(f"f_rest_{i}" for i in range(len(rest)))
+    if len(rest) not in SH_DEGREE_OF_REST:
+        raise PlyError(
+            "bad_sh_count",
+            f"{name}: {len(rest)} f_rest properties match no SH degree (expected 0, 9, 24 or 45)",
+        )
+    return tuple(expected)
 
 
 def _check_size(fmt: str, elements: list[Element], vertex: Element, body: int, name: str) -> None:

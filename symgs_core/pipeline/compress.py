@@ -117,6 +117,10 @@ def compress(
     t0 = time.perf_counter()
     report("load", 0.0, "loading scene")
     source, input_bytes, name = _load(scene)
+    if isinstance(scene, GaussianScene):  # a file's values are checked as it is read; a scene in memory, here alike
+        from ..ply import checked_scene
+
+        source = checked_scene(source, name)[0]
     if not len(source):
         raise ValueError(f"{name}: the scene has no Gaussians, there is nothing to compress")
     source = source.to(device)

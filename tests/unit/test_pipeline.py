@@ -353,3 +353,45 @@ def test_photographs_that_do_not_show_the_upload_are_refused_before_any_work(tmp
     assert refused.value.code == "images_mismatch"
     assert "codec" not in steps and "levels" not in steps
     assert compress(shown, images=tmp_path, config=config).report.cameras.fitting.source == "photographs"
+
+
+@pytest.mark.parametrize(
+    ("attribute", "index", "value", "code", "named"),
+    [
+        ("means", (3, 0), math.nan, "non_finite", "x (1 values)"),
+        ("scales", (4, 2), math.inf, "non_finite", "scale_2 (1 values)"),
+        ("opacities", (5,), math.nan, "non_finite", "opacity (1 values)"),
+        ("scales", (0, 1), 1e30, "out_of_range", "scale_1 (1 values beyond +-88)"),
+        ("sh_dc", (2, 0), -1e5, "out_of_range", "f_dc_0 (1 values beyond +-4096)"),
+    ],
+)
+def test_a_scene_in_memory_is_refused_as_its_file_would_be(attribute, index, value, code, named):
+    """The Python API applies the PLY reader's rules before any work: the same code, naming the property, not an
+    uncoded error from deep in the codec."""
+    from symgs_core.ply import PlyError
+
+    bad = synthetic_scene("global", n=200, seed=4).scene.clone()
+    getattr(bad, attribute)[index] = value
+    steps = []
+    with pytest.raises(PlyError) as refused:
+        compress(bad, config=FAST, progress=lambda e: steps.append(e.stage))
+    assert refused.value.code == code
+    assert str(refused.value).startswith("scene: ") and named in str(refused.value)
+    assert set(steps) == {"load"}
+
+
+def test_a_scene_in_memory_is_repaired_and_converted_as_its_file_would_be(tmp_path):
+    """An infinite opacity is clamped as the reader clamps it (the caller's scene untouched), and float64 or float16
+    attributes are taken as float32, as a PLY's double properties are: the archives are those of the scene's file."""
+    from symgs_core.ply import save_scene
+
+    scene = synthetic_scene("global", n=200, seed=4).scene
+    scene.opacities[7] = math.inf
+    save_scene(scene, tmp_path / "scene.ply")
+    from_file = compress(tmp_path / "scene.ply", config=FAST).archive
+    assert compress(scene, config=FAST).archive == from_file
+    assert scene.opacities[7].item() == math.inf
+    assert compress(scene.map(lambda t: t.double()), config=FAST).archive == from_file
+    half = scene.map(lambda t: t.half())
+    save_scene(half.map(lambda t: t.float()), tmp_path / "half.ply")
+    assert compress(half, config=FAST).archive == compress(tmp_path / "half.ply", config=FAST).archive

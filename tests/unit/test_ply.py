@@ -352,3 +352,66 @@ def test_the_scene_owns_its_values(tmp_path: Path) -> None:
     assert_bit_equal(scene, expected_scene(cols, 2))
     for name, tensor in scene.tensors().items():
         assert tensor.is_contiguous() and tensor.dtype == torch.float32, name
+
+
+def test_ascii_header_claiming_fewer_vertices_than_the_file_holds(tmp_path: Path) -> None:
+    """As for a binary file: the rows past the declared count would be dropped without a word. Blank space is not
+    data."""
+    data = write_ply(tmp_path / "ok.ply", random_columns(10, 0, seed=13), text=True).read_bytes()
+    short = tmp_path / "short.ply"
+    short.write_bytes(data.replace(b"element vertex 10", b"element vertex 7"))
+    with pytest.raises(PlyError, match="declares 7 Gaussians, fewer than the file carries") as err:
+        read_scene(short)
+    assert err.value.code == "trailing_data"
+    blank = tmp_path / "blank.ply"
+    blank.write_bytes(data + b"\n \t\r\n\n")
+    assert len(load_scene(blank)) == 10
+
+
+@pytest.mark.parametrize(
+    ("names", "value"),
+    [
+        (["scale_0", "scale_1", "scale_2"], 1e30),  # exp overflows float32
+        (["scale_1"], -100.0),  # exp is zero in float32
+        (["x"], 3e38),
+        (["rot_2"], -1e30),
+        (["f_dc_1"], 1e5),  # beyond the codec's colour grids at fine steps
+        (["f_rest_4"], -1e30),
+    ],
+)
+def test_finite_values_the_pipeline_cannot_carry_are_refused_naming_the_property(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], names: list[str], value: float
+) -> None:
+    """Refused as the file is read, with a code of its own, rather than deep in the codec with an archive error."""
+    from service.cli import main
+
+    cols = random_columns(300, 1, seed=14)
+    for name in names:
+        cols[name][:5] = value
+    path = write_ply(tmp_path / "huge.ply", cols)
+    with pytest.raises(PlyError, match=f"{names[-1]} \\(5 values beyond") as err:
+        read_scene(path)
+    assert err.value.code == "out_of_range"
+    assert main(["compress", str(path), "-o", str(tmp_path / "huge.symgs"), "--quiet"]) == 2
+    printed = capsys.readouterr().err
+    assert f"symgs compress: error: out_of_range: huge.ply: values out of range in {names[0]} (5 values" in printed
+
+
+def test_opacity_logits_whose_exp_overflows_are_clamped_as_infinities_are(tmp_path: Path) -> None:
+    cols = random_columns(10, 0, seed=15)
+    cols["opacity"][[1, 2, 3]] = [1e30, np.inf, -100.0]
+    cols["opacity"][4] = 88.0  # the last logit kept as stored
+    scene, report = read_scene(write_ply(tmp_path / "opacity.ply", cols))
+    assert report.repairs == {"opacity_pos_inf_clamped": 2, "opacity_neg_inf_clamped": 1}
+    assert scene.opacities[[1, 2, 3, 4]].tolist() == [OPACITY_LOGIT_MAX, OPACITY_LOGIT_MAX, -OPACITY_LOGIT_MAX, 88.0]
+
+
+def test_a_gap_in_the_f_rest_numbering_is_named_not_miscounted(tmp_path: Path) -> None:
+    """45 f_rest properties are degree 3's count: the message must say what is wrong with them, not the count."""
+    cols = random_columns(4, 0)
+    for i in [*range(44), 50]:
+        cols[f"f_rest_{i}"] = np.zeros(4, dtype=np.float32)
+    with pytest.raises(PlyError, match="not numbered 0..44: f_rest_44 missing, f_rest_50 in their place") as err:
+        read_scene(write_ply(tmp_path / "gap.ply", cols))
+    assert err.value.code == "bad_sh_count"
+    assert "match no SH degree" not in str(err.value)
