@@ -117,7 +117,8 @@ def scene_bounds(means: Tensor) -> tuple[Tensor, float]:
     center = means.median(dim=0).values
     dist = (means - center).norm(dim=-1)
     radius = float(torch.quantile(dist.float(), 0.95)) if dist.numel() > 1 else 0.0
-    return center, max(radius, 1e-6)
+    # A point set of no size (one Gaussian, or all at one point) still gets cameras a float apart from its centre.
+    return center, max(radius, 1e-6 * max(1.0, float(center.abs().max())))
 
 
 def fibonacci_directions(count: int) -> Tensor:

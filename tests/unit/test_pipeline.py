@@ -395,3 +395,14 @@ def test_a_scene_in_memory_is_repaired_and_converted_as_its_file_would_be(tmp_pa
     half = scene.map(lambda t: t.half())
     save_scene(half.map(lambda t: t.float()), tmp_path / "half.ply")
     assert compress(half, config=FAST).archive == compress(tmp_path / "half.ply", config=FAST).archive
+
+
+@pytest.mark.parametrize("at", [0.0, 1e15])
+def test_gaussians_all_at_one_point_are_compressed(at: float):
+    """A point set of no size gets cameras a float apart from it, wherever it lies (far from the origin too)."""
+    scene = synthetic_scene("global", n=200, seed=0, sh_degree=0).scene
+    point = scene.with_(means=torch.zeros_like(scene.means) + at)
+    config = CompressConfig.for_preset("balanced", fit_views=2, eval_views=2, eval_resolution=32, max_levels=0,
+                                       device="cpu", pictures=False)  # fmt: skip
+    report = compress(point, config=config).report
+    assert report.fitting.worst >= report.psnr_floor and report.gaussians.decoded > 0
