@@ -51,7 +51,10 @@ def public_job(record: JobRecord) -> Job:
         updated_at=record.updated_at,
         links=JobLinks(
             self=base, events=f"{base}/events", result=f"{base}/result", report=f"{base}/report",
-            scene=f"{base}/scene", exports={fmt.name: f"{base}/{fmt.artifact}" for fmt in EXPORTS},
+            scene=f"{base}/scene",
+            # A finished job links the exports it has: a scene some format cannot hold has none in it (``message``).
+            exports={fmt.name: f"{base}/{fmt.artifact}" for fmt in EXPORTS
+                     if not record.finished or fmt.artifact in record.artifacts},
         ),  # fmt: skip
     )
 

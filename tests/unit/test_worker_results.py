@@ -28,3 +28,15 @@ def test_an_export_the_scene_does_not_fit_is_named_and_the_others_are_written(tm
     assert skipped.startswith("result.spz not written:") and "fixed point" in skipped
     assert "result.spz" not in written
     assert {"result.symgs", "report.json"} | {f.artifact for f in EXPORTS if f.artifact != "result.spz"} <= written
+
+
+def test_a_finished_job_links_only_the_exports_it_has() -> None:
+    from service.api.job_view import public_job
+
+    scene = {"filename": "scene.ply", "bytes": 1, "gaussians": 1, "sh_degree": 0}
+    written = ["result.symgs", *(f.artifact for f in EXPORTS if f.artifact != "result.spz")]
+    done = JobRecord(id="1" * 32, owner="owner", params=JobParams(), queue="cpu", scene=scene, state="succeeded",
+                     progress=1.0, artifacts=written, message="result.spz not written: ...")  # fmt: skip
+    running = JobRecord(id="2" * 32, owner="owner", params=JobParams(), queue="cpu", scene=scene, state="running")
+    assert {f.name for f in EXPORTS} - set(public_job(done).links.exports) == {"spz"}
+    assert set(public_job(running).links.exports) == {f.name for f in EXPORTS}
