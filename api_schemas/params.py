@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from symgs_core.config import DEFAULT_PRESET, PRESETS, Preset
+from symgs_core.config import DEFAULT_PRESET, PRESETS, SEED_MAX, Preset
 
 DevicePreference = Literal["auto", "cpu", "cuda"]
 _PRESETS_TEXT = "; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items())
@@ -54,7 +54,7 @@ class JobParams(BaseModel):
         None, ge=16, le=2048, description="longest side of fitting and evaluation views, pixels"
     )
     use_mirrors: bool | None = Field(None, description="false: the plain codec only (the baseline)")
-    seed: int | None = Field(None, ge=0, le=2**31 - 1)
+    seed: int | None = Field(None, ge=0, le=SEED_MAX)
     device: DevicePreference = "auto"
 
     def pipeline_overrides(self) -> dict:

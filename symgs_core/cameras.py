@@ -84,6 +84,7 @@ class Camera:
         width: int = 256,
         height: int = 256,
         name: str = "",
+        near: float = NEAR_PLANE,
     ) -> Camera:
         """A camera at ``eye`` looking at ``target``; ``fov_deg`` is the horizontal field of view."""
         eye_t = torch.as_tensor(eye, dtype=torch.float64)
@@ -102,7 +103,7 @@ class Camera:
         if not 0.0 < fov_deg < 180.0:
             raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
         fx = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
-        return Camera(R.float(), t.float(), fx, fx, width / 2.0, height / 2.0, width, height, name)
+        return Camera(R.float(), t.float(), fx, fx, width / 2.0, height / 2.0, width, height, name, near)
 
 
 def near_for(radius: float) -> float:
@@ -148,8 +149,8 @@ def orbit_cameras(
         # Near the poles the world up is parallel to the view: use another up there.
         cam_up = up_t if abs(float(d @ up_t)) < 0.99 else torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
         eye = center.to(torch.float64) + distance * d
-        camera = Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height, name=f"orbit_{i:03d}")
-        cams.append(replace(camera, near=near_for(radius)))
+        cams.append(Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height,
+                                   name=f"orbit_{i:03d}", near=near_for(radius)))  # fmt: skip
     return cams
 
 

@@ -62,11 +62,12 @@ def budget_for_floor(floor: float, nominal: float) -> float:
     return 10.0 * math.log10(1.0 + 10.0 ** ((nominal - floor) / 10.0))
 
 
-# Integer settings and their bounds; seeds as every door takes them (the CLI's --seed, the API's seed).
+SEED_MAX = 2**31 - 1  # seeds as every door takes them: the CLI's --seed, the API's seed, CompressConfig.seed
+# Integer settings and their bounds.
 _INTEGER_RANGES = (
     ("max_levels", 0, 16), ("iterations", 0, 100_000),
     ("train_views", 1, 1000), ("fit_views", 1, 1000), ("eval_views", 1, 1000),
-    ("resolution", 16, 4096), ("eval_resolution", 16, 4096), ("seed", 0, 2**31 - 1),
+    ("resolution", 16, 4096), ("eval_resolution", 16, 4096), ("seed", 0, SEED_MAX),
 )  # fmt: skip
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -113,8 +113,8 @@ def viewer_cameras(
     for i, d in enumerate(directions):
         distance = (near + (far - near) * ((0.5 + i * golden) % 1.0)) * radius
         up = turn[:, 2] if abs(float(d @ turn[:, 2])) < 0.99 else turn[:, 1]
-        camera = Camera.look_at(c + distance * d, c, up, FOV_DEG, resolution, resolution, name=f"{name}_{i:03d}")
-        cams.append(replace(camera, near=near_for(radius)))
+        cams.append(Camera.look_at(c + distance * d, c, up, FOV_DEG, resolution, resolution, name=f"{name}_{i:03d}",
+                                   near=near_for(radius)))  # fmt: skip
     return cams
 
 

@@ -24,13 +24,12 @@ class CliError(Exception):
     """A user-facing error: printed without a traceback, exit status 2."""
 
 
-# The seeds a job over HTTP may name (api_schemas.params.JobParams.seed): the same settings are valid everywhere.
-SEEDS = range(2**31)
-
-
 def check_seed(option: str, seed: int | None) -> None:
-    if seed is not None and seed not in SEEDS:
-        raise CliError(f"{option} must be in 0..{SEEDS[-1]}, got {seed}")
+    """The seeds every door takes (``symgs_core.config.SEED_MAX``), named by the option that gave one."""
+    from symgs_core.config import SEED_MAX
+
+    if seed is not None and not 0 <= seed <= SEED_MAX:
+        raise CliError(f"{option} must be in 0..{SEED_MAX}, got {seed}")
 
 
 def check_output(option: str, path: Path | None, *, folder: bool = False) -> None:

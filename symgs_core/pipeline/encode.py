@@ -112,9 +112,9 @@ def prune(
 
 
 def _identity(choice: Choice) -> tuple:
-    """What makes two choices one archive: each section's rung and codec, and each Gaussian's SH degree."""
+    """What makes two choices one archive: each section's codec (its steps) and each Gaussian's SH degree."""
     degrees = None if choice.degrees is None else choice.degrees.cpu().numpy().tobytes()
-    return tuple(sorted(choice.rungs.items())), tuple(repr(c) for c in choice.codecs.values()), degrees
+    return tuple(sorted((section, repr(codec)) for section, codec in choice.codecs.items())), degrees
 
 
 def fit_codec(
