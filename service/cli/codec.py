@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
-from .parser import CliError, check_output, check_seed
+from .parser import CliError, check_output, check_seed, error_text
 
 HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
 
@@ -90,8 +90,7 @@ def _compress(args: argparse.Namespace) -> int:
         try:
             result = compress(args.scene, images=args.images, config=config, progress=progress)
         except ValueError as exc:  # PlyError, DatasetError and bad settings all say what is wrong
-            code = getattr(exc, "code", None)  # the word a service client would be told
-            raise CliError(f"{code}: {exc}" if code else str(exc)) from exc
+            raise CliError(error_text(exc)) from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_bytes(result.archive)
     if args.report is not None:
@@ -133,12 +132,12 @@ def _decompress(args: argparse.Namespace) -> int:
         else:
             scene = expand_archive(decode_archive(args.archive.read_bytes()))
     except ValueError as exc:  # ArchiveError, HalfPlyError
-        raise CliError(f"{args.archive}: {exc}") from exc
+        raise CliError(f"{args.archive}: {error_text(exc)}") from exc
     args.output.parent.mkdir(parents=True, exist_ok=True)
     try:
         fmt.save(scene, args.output, version=args.spz_version)
     except ValueError as exc:  # a scene the format cannot hold (e.g. positions beyond .spz's fixed point)
-        raise CliError(f"{args.output}: {exc}") from exc
+        raise CliError(f"{args.output}: {error_text(exc)}") from exc
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0
@@ -181,7 +180,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             background=torch.zeros(3), seed=args.seed,
         )  # fmt: skip
     except ValueError as exc:  # PlyError, ArchiveError, SpzError, ... all name the problem
-        raise CliError(str(exc)) from exc
+        raise CliError(error_text(exc)) from exc
     fidelity = evaluate(candidate, views.eval, views.background)
     finite = lambda x: None if math.isinf(x) else x  # noqa: E731
     figures = {

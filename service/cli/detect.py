@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .parser import CliError
+from .parser import CliError, error_text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -52,7 +52,7 @@ def run_detect(args: argparse.Namespace) -> int:
     try:
         scene = load_scene(args.scene)
     except PlyError as exc:
-        raise CliError(f"cannot read {args.scene}: {exc}") from None
+        raise CliError(f"cannot read {args.scene}: {error_text(exc)}") from None
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     with torch.no_grad():

@@ -24,6 +24,16 @@ class CliError(Exception):
     """A user-facing error: printed without a traceback, exit status 2."""
 
 
+def error_text(exc: Exception) -> str:
+    """An input error as ``code: message`` when it carries a machine-readable ``code`` (PlyError, DatasetError,
+    ArchiveError): the word the HTTP API would answer with, so a script can tell failures apart the same way."""
+    code = getattr(exc, "code", None)
+    text = str(exc)
+    if not code or text.startswith(f"{code}: "):  # ArchiveError's own text already leads with its code
+        return text
+    return f"{code}: {text}"
+
+
 def check_seed(option: str, seed: int | None) -> None:
     """The seeds every door takes (``symgs_core.config.SEED_MAX``), named by the option that gave one."""
     from symgs_core.config import SEED_MAX

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .parser import CliError, check_output
+from .parser import CliError, check_output, error_text
 
 DEFAULT_ORBIT_SIZE = 512
 DEFAULT_ORBIT_VIEWS = 8
@@ -61,7 +61,7 @@ def _read(path: Path) -> tuple[Any, Any]:
     try:
         return read_scene(path)
     except PlyError as exc:
-        raise CliError(f"cannot read {path}: {exc}") from None
+        raise CliError(f"cannot read {path}: {error_text(exc)}") from None
 
 
 def _compact(names: list[str]) -> str:
@@ -165,7 +165,7 @@ def _pick_camera(args: argparse.Namespace, scene: Any) -> tuple[Any, Any, str]:
         try:
             frames = dataset_frames(args.dataset, args.split)
         except DatasetError as exc:
-            raise CliError(f"cannot read dataset {args.dataset}: {exc}") from None
+            raise CliError(f"cannot read dataset {args.dataset}: {error_text(exc)}") from None
         if not 0 <= args.view < len(frames):
             raise CliError(
                 f"view {args.view} is out of range: split {args.split!r} has {len(frames)} views (0..{len(frames) - 1})"
@@ -232,7 +232,7 @@ def run_render(args: argparse.Namespace) -> int:
         try:
             reference = read_image(frame.path, background)
         except DatasetError as exc:
-            raise CliError(f"cannot read the dataset image: {exc}") from None
+            raise CliError(f"cannot read the dataset image: {error_text(exc)}") from None
         reference = resize_image(reference, camera.width, camera.height)
         if min(camera.width, camera.height) >= 11:
             fidelity = f"PSNR {float(psnr(image, reference)):.2f} dB, SSIM {float(ssim(image, reference)):.4f}"

@@ -73,6 +73,23 @@ def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
     assert "symgs compress: error: images_mismatch: " in capsys.readouterr().err  # the code a service client sees
 
 
+def test_errors_name_the_code_the_api_would(scene_file, tmp_path, capsys):  # noqa: ANN001
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(scene_file.read_bytes()[:-100])
+    corrupt = tmp_path / "corrupt.symgs"
+    corrupt.write_bytes(b"\x89SYMGS\r\n" + b"\x00" * 40)  # a format version no build wrote
+    for argv, error in [
+        (["evaluate", str(cut), str(scene_file)], "symgs evaluate: error: truncated: "),
+        (["evaluate", str(scene_file), str(cut)], "symgs evaluate: error: truncated: "),
+        (["evaluate", str(scene_file), str(corrupt)], "symgs evaluate: error: unsupported_version: "),
+        (["decompress", str(corrupt), "-o", str(tmp_path / "x.ply")], f"symgs decompress: error: {corrupt}: "
+         "unsupported_version: "),
+    ]:  # fmt: skip
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(error) and err.count("unsupported_version") <= 1, err  # the code once, not twice
+
+
 def _bad_archives(scene_file) -> dict[str, bytes]:  # noqa: ANN001
     from symgs_core.codec import encode_archive
     from tests.unit.test_archive import random_contents

@@ -100,6 +100,25 @@ def test_info_errors_exit_2(
     assert err.startswith("symgs info: error:") and message in err
 
 
+@pytest.mark.parametrize("command", [["info"], ["render", "--orbit", "0", "-o", "OUT"]])
+@pytest.mark.parametrize(("damage", "error"), [("truncate", "truncated"), ("replace", "not_ply")])
+def test_unreadable_scenes_name_the_code_the_api_would(
+    scene_file: tuple[GaussianScene, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    command: list[str],
+    damage: str,
+    error: str,
+) -> None:
+    _, path = scene_file
+    data = path.read_bytes()
+    path.write_bytes(data[:-100] if damage == "truncate" else b"hello")
+    argv = [command[0], str(path), *(str(tmp_path / "x.png") if a == "OUT" else a for a in command[1:])]
+    code, out, err = run(argv, capsys)
+    assert code == 2 and out == ""
+    assert err.startswith(f"symgs {command[0]}: error: cannot read {path}: {error}: "), err
+
+
 def test_render_orbit_writes_the_rendered_view(
     scene_file: tuple[GaussianScene, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

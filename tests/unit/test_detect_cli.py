@@ -52,3 +52,11 @@ def test_errors_are_user_errors(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "cannot read" in capsys.readouterr().err
     assert main(["detect", str(broken), "--min-coverage", "2"]) == 2
     assert "min_coverage" in capsys.readouterr().err
+
+
+def test_an_unreadable_scene_names_the_code_the_api_would(scene_file, tmp_path: Path, capsys) -> None:
+    path, _ = scene_file
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(path.read_bytes()[:-100])
+    assert main(["detect", str(cut)]) == 2
+    assert capsys.readouterr().err.startswith(f"symgs detect: error: cannot read {cut}: truncated: ")
