@@ -30,6 +30,10 @@ class Cameras(BaseModel):
     fitting: CameraSet
     evaluation: CameraSet
     disjoint: bool = Field(description="no camera is in two sets: the reported figures were fitted on nothing")
+    background: tuple[float, float, float] = Field(
+        description="RGB in 0..1 every render of the job drew the scene on: black against renders of the input and "
+        "photographs with alpha, else the flat backdrop the photographs show around the upload"
+    )
 
 
 class LevelReport(BaseModel):

@@ -46,6 +46,9 @@ class Cameras:
     fitting: CameraSet
     evaluation: CameraSet
     disjoint: bool  # no camera of one set is in another: the reported figures were fitted on nothing
+    # RGB in [0, 1] every render of the job drew the scene on: black against renders of the input and against
+    # photographs with alpha; the flat backdrop photographs without alpha show around the upload, where they show one
+    background: tuple[float, float, float]
 
 
 @dataclass(frozen=True)

@@ -222,7 +222,7 @@ def compress(
         fitting=fitting,
         psnr_input=psnr_input,
         psnr_floor=floor,
-        cameras=Cameras(*views.sets, disjoint=True),
+        cameras=Cameras(*views.sets, disjoint=True, background=tuple(background.tolist())),
         seconds=dict(report.seconds),
         device=str(device),
         config=config,

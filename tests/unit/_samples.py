@@ -33,8 +33,8 @@ def sample_report() -> Report:
         stages=(StageReport("quantization", 50, 20, 30, 45.0, 1.0, 0.5, removed=None),),
         codec=CodecReport("balanced", Steps(1e-4, 0.01, 0.06, 0.01, 0.03, (0.03,), 0), 41.6, 5),
         fidelity=Fidelity(math.inf, 44.0, 1.0), fitting=Fidelity(50.0, 45.0, 0.999), psnr_input=math.inf,
-        psnr_floor=41.6, cameras=Cameras(*cameras, disjoint=True), seconds={"load": 0.25, "levels": 2.0},
-        device="cpu", config=CompressConfig.for_preset(),
+        psnr_floor=41.6, cameras=Cameras(*cameras, disjoint=True, background=(0.0, 0.0, 0.0)),
+        seconds={"load": 0.25, "levels": 2.0}, device="cpu", config=CompressConfig.for_preset(),
     )  # fmt: skip
 
 

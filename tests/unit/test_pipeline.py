@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from symgs_core.bench.photos import photographed
 from symgs_core.config import CompressConfig
@@ -63,6 +66,7 @@ def test_symmetric_scene_halves_the_archive_at_high_fidelity(symmetric, symmetri
     assert report.gaussians.decoded >= report.gaussians.input * 0.95
     assert report.fitting.worst >= report.psnr_floor >= 39.0
     assert report.cameras.disjoint and report.cameras.evaluation.name == "evaluation"
+    assert report.cameras.background == (0.0, 0.0, 0.0)  # renders of the input are drawn on black
 
 
 def test_decoded_archive_is_the_scene_that_was_judged(symmetric, symmetric_result):
@@ -314,12 +318,24 @@ def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
     assert small.gaussians.stored == pytest.approx(at_size.gaussians.stored, rel=0.1)
 
 
+def with_alpha(folder: Path) -> None:
+    """The photographs of ``folder`` made RGBA: transparent where they show nothing (black), with white hidden
+    there, which no compositing may show."""
+    for png in folder.rglob("*.png"):
+        rgb = np.asarray(Image.open(png).convert("RGB"))
+        empty = (rgb == 0).all(axis=-1, keepdims=True)
+        rgba = np.concatenate([np.where(empty, 255, rgb), np.where(empty, 0, 255)], axis=-1).astype(np.uint8)
+        Image.fromarray(rgba, "RGBA").save(png)
+
+
 def test_photographs_on_a_white_backdrop_are_matched_on_it(tmp_path):
     """Photographs without alpha carry their backdrop (NeRF-Synthetic's white): the job renders the upload on it, so
-    it scores on white as on black, not a few dB for every pixel around the object."""
+    it scores on white as on black, not a few dB for every pixel around the object, and its report names it."""
     scores = {}
-    for name, backdrop in (("black", (0.0, 0.0, 0.0)), ("white", (1.0, 1.0, 1.0))):
+    for name, backdrop in (("black", (0.0, 0.0, 0.0)), ("white", (1.0, 1.0, 1.0)), ("rgba", (0.0, 0.0, 0.0))):
         upload = photographed("global", tmp_path / name, n=800, photos=8, tests=2, resolution=48, backdrop=backdrop)
+        if name == "rgba":
+            with_alpha(tmp_path / name)
         config = CompressConfig.for_preset("balanced", fit_views=4, eval_views=2, eval_resolution=48,
                                            use_mirrors=False, device="cpu", pictures=False)  # fmt: skip
         scores[name] = compress(upload, images=tmp_path / name, config=config).report
@@ -329,6 +345,9 @@ def test_photographs_on_a_white_backdrop_are_matched_on_it(tmp_path):
     assert white.psnr_input == pytest.approx(black.psnr_input, abs=2.0) and white.psnr_input > 15.0
     assert white.fidelity.worst == pytest.approx(black.fidelity.worst, abs=2.0)
     assert white.fitting.worst >= white.psnr_floor > black.psnr_floor - 2.0
+    assert white.cameras.background == pytest.approx((1.0, 1.0, 1.0), abs=2 / 255)
+    # Photographs with alpha are composited on black, whatever colour their transparent pixels hide.
+    assert black.cameras.background == scores["rgba"].cameras.background == (0.0, 0.0, 0.0)
 
 
 @pytest.mark.parametrize("upload", ["another scene", "turned a quarter", "out of view"])
