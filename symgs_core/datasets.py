@@ -1,7 +1,8 @@
 """Posed image sets: NeRF-Synthetic (``transforms_*.json``) and COLMAP (``sparse/0``, text or binary).
 
 Every camera comes out in our convention (``cameras.COORDINATE_CONVENTION``: OpenCV axes, world-to-camera).
-Images are float32 [H, W, 3] in [0, 1]; RGBA images are composited on a chosen background.
+Images are float32 [H, W, 3] in [0, 1]; RGBA images are composited on a chosen background, after resizing: a
+``Photograph`` keeps its alpha, so what was read once can be laid on another background without reading it again.
 
 NeRF-Synthetic: ``transform_matrix`` is camera-to-world with OpenGL/Blender camera axes (x right, y up, z back);
 the focal length comes from ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy`` when given, as in
@@ -104,6 +105,21 @@ class View:
     name: str
 
 
+@dataclass
+class Photograph:
+    """One posed image before it is laid on a background, the size of ``camera``: ``colour`` [H, W, 3] float32
+    premultiplied by ``alpha`` [H, W, 1] (None: an opaque image, which no background shows through)."""
+
+    camera: Camera
+    colour: Tensor
+    alpha: Tensor | None
+    name: str
+
+    def on(self, background: Tensor | tuple[float, float, float]) -> Tensor:
+        """The image laid on ``background`` [3]."""
+        return composite(self.colour, self.alpha, background)
+
+
 @dataclass(frozen=True)
 class PosedFrame:
     """A camera and the image file it belongs to, before the image is decoded."""
@@ -127,8 +143,8 @@ def _image_size(path: Path) -> tuple[int, int]:
         raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
 
 
-def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
-    """Image [H, W, 3] float32 in [0, 1]; an alpha channel is composited on ``background``."""
+def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
+    """Image [H, W, 3] float32 in [0, 1], premultiplied by its alpha channel [H, W, 1] (None: it has none)."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -138,10 +154,23 @@ def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1
     except (OSError, UnidentifiedImageError) as exc:
         raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
     rgb = torch.from_numpy(array[..., :3].copy())
-    if has_alpha:
-        alpha = torch.from_numpy(array[..., 3:].copy())
-        rgb = rgb * alpha + torch.tensor(background, dtype=torch.float32) * (1.0 - alpha)
-    return rgb
+    if not has_alpha:
+        return rgb, None
+    alpha = torch.from_numpy(array[..., 3:].copy())
+    return rgb * alpha, alpha
+
+
+def composite(colour: Tensor, alpha: Tensor | None, background: Tensor | tuple[float, float, float]) -> Tensor:
+    """``colour`` [H, W, 3], premultiplied by ``alpha`` [H, W, 1] (None: opaque), laid on ``background`` [3]."""
+    if alpha is None:
+        return colour
+    under = torch.as_tensor(background, dtype=colour.dtype, device=colour.device) * (1.0 - alpha)
+    return (colour + under).clamp(0.0, 1.0)  # rounding may carry the sum a step past 1
+
+
+def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """Image [H, W, 3] float32 in [0, 1]; an alpha channel is composited on ``background``."""
+    return composite(*read_premultiplied(path), background)
 
 
 def resize_image(image: Tensor, width: int, height: int) -> Tensor:
@@ -189,12 +218,20 @@ def _rotation_ok(r: np.ndarray) -> bool:
     return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
 
 
-def _load_views(frames: list[PosedFrame], background: tuple[float, float, float]) -> list[View]:
-    views = []
+def _load_photographs(frames: list[PosedFrame]) -> list[Photograph]:
+    photographs = []
     for frame in frames:
-        image = read_image(frame.path, background)
-        views.append(View(frame.camera, resize_image(image, frame.camera.width, frame.camera.height), frame.name))
-    return views
+        colour, alpha = read_premultiplied(frame.path)
+        w, h = frame.camera.width, frame.camera.height
+        # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
+        # what resizing the composite would.
+        alpha = None if alpha is None else resize_image(alpha, w, h)
+        photographs.append(Photograph(frame.camera, resize_image(colour, w, h), alpha, frame.name))
+    return photographs
+
+
+def _load_views(frames: list[PosedFrame], background: tuple[float, float, float]) -> list[View]:
+    return [View(p.camera, p.on(background), p.name) for p in _load_photographs(frames)]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -737,6 +774,12 @@ def load_dataset(
 ) -> list[View]:
     """Views of a NeRF-Synthetic or COLMAP dataset, whichever ``root`` holds."""
     background = _check_background(background)
+    return [View(p.camera, p.on(background), p.name) for p in load_photographs(root, split, max_views, scale)]
+
+
+def load_photographs(
+    root: str | Path, split: Split = "all", max_views: int | None = None, scale: float = 1.0
+) -> list[Photograph]:
+    """The views of ``load_dataset`` before they are laid on a background."""
     frames = _subsample(dataset_frames(root, split), max_views)
-    frames = [PosedFrame(_scaled(f.camera, scale), f.path, f.name) for f in frames]
-    return _load_views(frames, background)
+    return _load_photographs([PosedFrame(_scaled(f.camera, scale), f.path, f.name) for f in frames])

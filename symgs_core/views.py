@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -30,6 +30,9 @@ from .cameras import Camera, fibonacci_directions, near_for, scene_bounds
 from .metrics import mse_to_psnr, ssim
 from .report import CameraSet, Fidelity
 from .scene import GaussianScene
+
+if TYPE_CHECKING:
+    from .datasets import Photograph
 
 # Distances (in scene radii) a viewer's camera takes, close-up to the whole object in the frame.
 DISTANCES = (1.6, 2.8)
@@ -48,6 +51,16 @@ class View(NamedTuple):
     camera: Camera
     image: Tensor  # [H, W, 3] target
     mask: Tensor  # [H, W] bool: the object's own pixels
+
+
+class PhotoTarget(NamedTuple):
+    """A photograph before it is laid on a background, with the object's pixels in its view."""
+
+    photograph: Photograph
+    mask: Tensor  # [H, W] bool
+
+    def on(self, background: Tensor) -> View:
+        return View(self.photograph.camera, self.photograph.on(background), self.mask)
 
 
 class RenderedTargets(Sequence[View]):
@@ -84,10 +97,28 @@ class ViewSet:
     eval: Sequence[View]
     background: Tensor
     sets: tuple[CameraSet, CameraSet, CameraSet]
+    # The three sets' photographs before a background (None: targets rendered from the scene), for ``on``.
+    photographs: tuple[list[PhotoTarget], list[PhotoTarget], list[PhotoTarget]] | None = None
 
     @property
     def source(self) -> str:
         return self.sets[2].source
+
+    def on(self, background: Tensor) -> ViewSet:
+        """The same photographs laid on ``background`` [3], from what was read: no image is read again, and the
+        object's pixels (where the scene renders opaque, whatever it is drawn on) are not rendered again."""
+        if self.photographs is None:
+            raise ValueError("only photographs are laid on another background; renders are drawn on theirs")
+        return _laid(self.photographs, background, self.sets)
+
+
+def _laid(
+    photographs: tuple[list[PhotoTarget], list[PhotoTarget], list[PhotoTarget]],
+    background: Tensor,
+    sets: tuple[CameraSet, CameraSet, CameraSet],
+) -> ViewSet:
+    train, fit, eval = ([target.on(background) for target in targets] for targets in photographs)
+    return ViewSet(train, fit, eval, background, sets, photographs)
 
 
 def _turn(seed: int) -> Tensor:
@@ -155,11 +186,10 @@ def dataset_views(
     evenly spaced, fit, and the other training images train. The object's pixels are where ``scene`` (the
     uncompressed upload) renders opaque."""
 
-    from .datasets import load_dataset
+    from .datasets import load_photographs
 
-    bg = tuple(float(v) for v in background)
     scale, width = photo_scale(folder, resolution)
-    photos = load_dataset(folder, split="train", background=bg, scale=scale)
+    photos = load_photographs(folder, split="train", scale=scale)
     if len(photos) < 2:
         raise ValueError(f"{folder}: at least 2 training images are needed (one to train, one to fit)")
     count = min(fit, len(photos) // 2)
@@ -168,13 +198,13 @@ def dataset_views(
     def described(name: str, n: int) -> CameraSet:
         return CameraSet(name, n, "photographs", width, None)
 
-    views = [_photo_view(scene, p.camera, p.image, background) for p in photos]
-    train_views = [v for i, v in enumerate(views) if i not in fit_index]
-    fit_views = [v for i, v in enumerate(views) if i in fit_index]
-    eval_views = dataset_eval_views(folder, scene, eval=eval, resolution=resolution, background=background)
-    sets = (described("training", len(train_views)), described("fitting", len(fit_views)),
-            described("evaluation", len(eval_views)))  # fmt: skip
-    return ViewSet(train_views, fit_views, eval_views, background, sets)
+    targets = [_photo_target(scene, p) for p in photos]
+    train_targets = [t for i, t in enumerate(targets) if i not in fit_index]
+    fit_targets = [t for i, t in enumerate(targets) if i in fit_index]
+    eval_targets = _eval_targets(folder, scene, eval=eval, resolution=resolution)
+    sets = (described("training", len(train_targets)), described("fitting", len(fit_targets)),
+            described("evaluation", len(eval_targets)))  # fmt: skip
+    return _laid((train_targets, fit_targets, eval_targets), background, sets)
 
 
 def flat_colour_psnr(views: Sequence[View]) -> float:
@@ -240,23 +270,29 @@ def photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
 
 
 @torch.no_grad()
-def _photo_view(scene: GaussianScene, camera: Camera, image: Tensor, background: Tensor) -> View:
+def _photo_target(scene: GaussianScene, photograph: Photograph) -> PhotoTarget:
     from .render import render
 
-    camera, image = camera.to(scene.device), image.to(scene.device)
-    return View(camera, image, render(scene, camera, background).alpha >= OBJECT_ALPHA)
+    alpha = photograph.alpha
+    on_device = replace(photograph, camera=photograph.camera.to(scene.device),
+                        colour=photograph.colour.to(scene.device),
+                        alpha=None if alpha is None else alpha.to(scene.device))  # fmt: skip
+    # The scene's opacity does not depend on what it is drawn on: one render serves every background.
+    return PhotoTarget(on_device, render(scene, on_device.camera).alpha >= OBJECT_ALPHA)
+
+
+def _eval_targets(folder: str | Path, scene: GaussianScene, *, eval: int, resolution: int) -> list[PhotoTarget]:
+    from .datasets import load_photographs
+
+    scale, _ = photo_scale(folder, resolution)
+    return [_photo_target(scene, p) for p in load_photographs(folder, split="test", max_views=eval, scale=scale)]
 
 
 def dataset_eval_views(
     folder: str | Path, scene: GaussianScene, *, eval: int, resolution: int, background: Tensor
 ) -> list[View]:
     """The evaluation set of ``dataset_views`` alone (its test split), without loading the training photographs."""
-    from .datasets import load_dataset
-
-    scale, _ = photo_scale(folder, resolution)
-    bg = tuple(float(v) for v in background)
-    tests = load_dataset(folder, split="test", background=bg, max_views=eval, scale=scale)
-    return [_photo_view(scene, p.camera, p.image, background) for p in tests]
+    return [target.on(background) for target in _eval_targets(folder, scene, eval=eval, resolution=resolution)]
 
 
 @torch.no_grad()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
@@ -130,14 +129,13 @@ def compress(
     report("views", 0.0, "preparing views")
     background = torch.zeros(3, device=device)
     if images is not None:
-        photographs = functools.partial(dataset_views, images, source, fit=config.fit_views, eval=config.eval_views,
-                                        resolution=config.eval_resolution)  # fmt: skip
-        views = photographs(background=background)
+        views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
+                              resolution=config.eval_resolution, background=background)  # fmt: skip
         backdrop = photographed_backdrop(views.fit)
         if backdrop is not None and float((backdrop - background.cpu()).abs().max()) > BACKDROP_SAME:
             # Every render of the job (training, fitting, evaluation) draws the upload on the photographs' backdrop.
             background = backdrop.to(device)
-            views = photographs(background=background)
+            views = views.on(background)
         own = evaluate(source, views.fit, background, with_ssim=False)
         check_photographs(own, views.fit)
         reference = own.worst

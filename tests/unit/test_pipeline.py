@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -20,7 +21,7 @@ from symgs_core.pipeline.levels import SETTLED_COST, memberships, run_levels
 from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
 from symgs_core.synthetic import synthetic_scene
-from symgs_core.views import evaluate, self_supervised_views
+from symgs_core.views import dataset_views, evaluate, self_supervised_views
 
 # Float32 attributes: what is left to judge is the mirrors alone, with half a decibel to spend.
 FAST = CompressConfig.for_preset(
@@ -348,6 +349,34 @@ def test_photographs_on_a_white_backdrop_are_matched_on_it(tmp_path):
     assert white.cameras.background == pytest.approx((1.0, 1.0, 1.0), abs=2 / 255)
     # Photographs with alpha are composited on black, whatever colour their transparent pixels hide.
     assert black.cameras.background == scores["rgba"].cameras.background == (0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("alpha", [True, False], ids=["rgba", "rgb"])
+def test_photographs_laid_on_another_background_are_those_read_on_it(tmp_path, monkeypatch, alpha):
+    """A job that finds a backdrop lays what it read on it: every target is the one a read on that background gives,
+    tensor for tensor (downscaled, so the alpha is resized too), and no image is read again."""
+    from symgs_core import datasets
+
+    backdrop = (0.0, 0.0, 0.0) if alpha else (1.0, 1.0, 1.0)
+    upload = photographed("global", tmp_path, n=300, photos=6, tests=2, resolution=48, backdrop=backdrop)
+    if alpha:
+        with_alpha(tmp_path)
+    read = functools.partial(dataset_views, tmp_path, upload, fit=2, eval=2, resolution=32)
+    colour = torch.tensor([0.2, 0.5, 0.9])
+    black = read(background=torch.zeros(3))
+    direct = read(background=colour)
+    monkeypatch.setattr(datasets, "read_premultiplied", lambda path: pytest.fail(f"{path.name} read again"))
+    laid = black.on(colour)
+    assert torch.equal(laid.background, colour) and laid.sets == direct.sets
+    for ours, theirs, before in zip((laid.train, laid.fit, laid.eval), (direct.train, direct.fit, direct.eval),
+                                    (black.train, black.fit, black.eval), strict=True):  # fmt: skip
+        assert len(ours) == len(theirs) > 0
+        for (camera, image, mask), (their_camera, their_image, their_mask) in zip(ours, theirs, strict=True):
+            assert torch.equal(image, their_image) and torch.equal(mask, their_mask)
+            assert torch.equal(camera.R, their_camera.R) and torch.equal(camera.t, their_camera.t)
+            assert camera.width == their_camera.width == 32
+        # Where the photographs are transparent the new colour shows; opaque photographs keep their own backdrop.
+        assert any(not torch.equal(a.image, b.image) for a, b in zip(ours, before, strict=True)) == alpha
 
 
 @pytest.mark.parametrize("upload", ["another scene", "turned a quarter", "out of view"])
