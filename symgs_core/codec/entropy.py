@@ -23,10 +23,14 @@ length against the table's known shape before it allocates.
 
 from __future__ import annotations
 
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from .errors import ArchiveError
-from .masks import read_varints, write_varints
+from .masks import read_varints, varint, write_varints
 from .section import zstd_compress, zstd_decompress_exact
 
 MAX_ALPHABET = 1 << 22  # ANS histograms beyond this go to zstd: the histogram would cost more than it saves
@@ -34,6 +38,15 @@ COLUMNS, ROWS = 0, 1
 ZSTD, ANS = 0, 1
 RAW, DELTA = 0, 1
 _WIDTHS = {1: np.uint8, 2: np.uint16, 4: np.uint32}
+# Tables of at least this many symbols code their columns on every core: zstd and numpy release the GIL, so the
+# threads run side by side, and each column's stream is the same bytes whichever thread wrote it.
+PARALLEL_SYMBOLS = 1 << 15
+
+
+@functools.cache
+def _pool() -> ThreadPoolExecutor:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return ThreadPoolExecutor(max_workers=cores, thread_name_prefix="entropy")
 
 
 def _zigzag(v: int) -> int:
@@ -60,24 +73,39 @@ def _ans_words(symbols: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return coder.get_compressed()
 
 
-def _column_candidates(column: np.ndarray, level: int) -> list[bytes]:
+def _column(column: np.ndarray, level: int) -> bytes:
+    """The smallest stream of one column: raw or differenced values, each by zstd or ANS."""
     out = []
     for transform in (RAW, DELTA):
         values = column if transform == RAW else np.diff(column, prepend=np.int64(0))
         offset = int(values.min()) if len(values) else 0
         symbols = values - offset
         top = int(symbols.max()) if len(symbols) else 0
-        head = bytes([transform]) + write_varints(np.array([_zigzag(offset)]))
+        head = bytes([transform]) + varint(_zigzag(offset))
         width = _width(top)
         frame = zstd_compress(symbols.astype(_WIDTHS[width]).tobytes(), level)
-        out.append(bytes([ZSTD]) + head + bytes([width]) + write_varints(np.array([len(frame)])) + frame)
+        out.append(bytes([ZSTD]) + head + bytes([width]) + varint(len(frame)) + frame)
         if 0 < top < MAX_ALPHABET:  # constriction needs two symbols or more
             counts = np.bincount(symbols, minlength=top + 1)
             hist = zstd_compress(write_varints(counts), level)
             words = _ans_words(symbols, counts.astype(np.float64))
-            sizes = write_varints(np.array([top + 1, len(hist)]))
-            out.append(bytes([ANS]) + head + sizes + hist + write_varints(np.array([len(words)])) + words.tobytes())
-    return out
+            sizes = varint(top + 1) + varint(len(hist))
+            out.append(bytes([ANS]) + head + sizes + hist + varint(len(words)) + words.tobytes())
+    return min(out, key=len)
+
+
+def _rows(table: np.ndarray, level: int) -> bytes:
+    offsets = table.min(axis=0) if len(table) else np.zeros(table.shape[1], dtype=np.int64)
+    symbols = table - offsets
+    width = _width(int(symbols.max()) if symbols.size else 0)
+    frame = zstd_compress(np.ascontiguousarray(symbols.astype(_WIDTHS[width])).tobytes(), level)
+    return (
+        bytes([ROWS])
+        + write_varints(np.array([_zigzag(int(o)) for o in offsets], dtype=np.int64))
+        + bytes([width])
+        + varint(len(frame))
+        + frame
+    )
 
 
 def encode_table(table: np.ndarray, level: int = 9) -> bytes:
@@ -87,21 +115,13 @@ def encode_table(table: np.ndarray, level: int = 9) -> bytes:
     table = table.astype(np.int64)
     if table.size and (int(np.abs(table).max()) >= 1 << 30):
         raise ValueError(f"symbols must stay within +-2^30, got magnitude {int(np.abs(table).max())}")
-    columns = bytes([COLUMNS]) + b"".join(
-        min(_column_candidates(table[:, c], level), key=len) for c in range(table.shape[1])
-    )
-    offsets = table.min(axis=0) if len(table) else np.zeros(table.shape[1], dtype=np.int64)
-    symbols = table - offsets
-    width = _width(int(symbols.max()) if symbols.size else 0)
-    frame = zstd_compress(np.ascontiguousarray(symbols.astype(_WIDTHS[width])).tobytes(), level)
-    rows = (
-        bytes([ROWS])
-        + write_varints(np.array([_zigzag(int(o)) for o in offsets], dtype=np.int64))
-        + bytes([width])
-        + write_varints(np.array([len(frame)]))
-        + frame
-    )
-    return min(columns, rows, key=len)
+    if table.size >= PARALLEL_SYMBOLS and table.shape[1] > 1:
+        rows = _pool().submit(_rows, table, level)
+        parts = list(_pool().map(_column, table.T, [level] * table.shape[1]))
+        rows = rows.result()
+    else:
+        parts, rows = [_column(table[:, c], level) for c in range(table.shape[1])], _rows(table, level)
+    return min(bytes([COLUMNS]) + b"".join(parts), rows, key=len)
 
 
 class _Reader:

@@ -45,6 +45,19 @@ def write_varints(values: np.ndarray) -> bytes:
     return out.tobytes()
 
 
+def varint(value: int) -> bytes:
+    """The LEB128 bytes of one non-negative integer below 2^35, as ``write_varints`` writes it: the headers of the
+    entropy coder's columns write tens of thousands of these per encode, too many for an array call each."""
+    if not 0 <= value < VARINT_LIMIT:
+        raise ValueError(f"varints hold 0 <= v < 2^35, got {value}")
+    out = bytearray()
+    while value >= 0x80:
+        out.append(value & 0x7F | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
 def read_varints(buf: np.ndarray, pos: int, count: int) -> tuple[np.ndarray, int]:
     """``count`` varints from ``buf`` [B] uint8 at ``pos`` -> (values [count] int64, position after them)."""
     if count == 0:

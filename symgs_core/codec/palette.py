@@ -156,11 +156,15 @@ def fit_palette(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return _kmeans(rows, distinct, size)
 
 
+def _digest(rows: np.ndarray) -> bytes:
+    digest = hashlib.blake2b(np.ascontiguousarray(rows).tobytes(), digest_size=20)
+    digest.update(repr((rows.shape, rows.dtype.str)).encode())
+    return digest.digest()
+
+
 def _cached_fit(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """``fit_palette``, memoised on the rows' bytes and the size for the last ``CACHED_FITS`` calls."""
-    digest = hashlib.blake2b(np.ascontiguousarray(rows).tobytes(), digest_size=20)
-    digest.update(repr(rows.shape).encode())
-    key = (digest.digest(), size)
+    key = (_digest(rows), size)
     with _fits_lock:
         if key in _fits:
             _fits.move_to_end(key)
@@ -259,6 +263,8 @@ class RowWeights:
 
     keys: np.ndarray  # [M] sorted void keys of float32 rows
     weights: np.ndarray  # [M]
+    # The step search encodes the same rows at every rung: their shares are worked out once (rows' digest -> shares).
+    _shares: dict[bytes, np.ndarray] = field(default_factory=dict, compare=False, repr=False)
 
     @staticmethod
     def of(sh_rest: np.ndarray, weights: np.ndarray) -> RowWeights:
@@ -277,8 +283,16 @@ class RowWeights:
 
     def per_row(self, rows: np.ndarray) -> np.ndarray:
         """Each row's [R] share of its weight: a row that ``rows`` holds m times gets 1/m of it each time."""
-        _, inverse, counts = np.unique(_row_keys(rows.astype(np.float32)), return_inverse=True, return_counts=True)
-        return self.lookup(rows) / counts[inverse.reshape(-1)]
+        rows = rows.astype(np.float32)
+        digest = _digest(rows)
+        shares = self._shares.get(digest)
+        if shares is None:
+            _, inverse, counts = np.unique(_row_keys(rows), return_inverse=True, return_counts=True)
+            shares = self.lookup(rows) / counts[inverse.reshape(-1)]
+            shares.setflags(write=False)
+            self._shares.clear()  # one set of rows at a time: the ladder of one section
+            self._shares[digest] = shares
+        return shares
 
 
 def _row_keys(rows: np.ndarray) -> np.ndarray:

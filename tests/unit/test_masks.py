@@ -10,6 +10,7 @@ from hypothesis.extra.numpy import arrays
 
 from symgs_core.codec import ArchiveError
 from symgs_core.codec.masks import (
+    varint,
     MASKS,
     PACKED,
     RUNS,
@@ -104,6 +105,9 @@ def test_varints_match_leb128() -> None:
     for bad in ([-1], [2**35]):
         with pytest.raises(ValueError, match="varints hold"):
             write_varints(np.array(bad))
+        with pytest.raises(ValueError, match="varints hold"):
+            varint(bad[0])
+    assert b"".join(varint(v) for v in values) == data
 
 
 @pytest.mark.parametrize(

@@ -238,6 +238,9 @@ def test_row_weights_are_found_in_any_order_and_shared_among_repeats() -> None:
     expected = np.array([sum(w for k2, w in zip(keys, weights) if k2 == keys[i]) for i in perm])
     assert np.allclose(looked, expected)
     assert np.allclose(table.per_row(flat).sum(), weights.sum())
+    # Shares are remembered for the rows last asked about, and follow the rows when they change.
+    assert np.array_equal(table.per_row(flat[perm]), table.per_row(flat)[perm])
+    assert np.array_equal(table.per_row(flat[:3]), table.lookup(flat[:3]) / [keys[:3].count(k) for k in keys[:3]])
     assert table.lookup(np.full((2, flat.shape[1]), 9.0)).tolist() == [0.0, 0.0]
 
 

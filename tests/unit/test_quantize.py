@@ -54,6 +54,19 @@ def test_entropy_tables_round_trip_exactly(table: np.ndarray) -> None:
     assert np.array_equal(decode_table(encode_table(table), *table.shape, "t"), table)
 
 
+def test_a_large_table_codes_its_columns_in_parallel_to_the_same_bytes(monkeypatch: pytest.MonkeyPatch) -> None:
+    from symgs_core.codec import entropy
+
+    rng = np.random.default_rng(4)
+    n = entropy.PARALLEL_SYMBOLS
+    table = np.stack([np.cumsum(rng.integers(-3, 4, n)), rng.geometric(0.3, n), rng.integers(0, 9, n) * 1000,
+                      np.repeat(rng.integers(-50, 50, n // 64), 64)], axis=1)  # fmt: skip
+    parallel = encode_table(table)
+    monkeypatch.setattr(entropy, "PARALLEL_SYMBOLS", table.size + 1)
+    assert encode_table(table) == parallel
+    assert np.array_equal(decode_table(parallel, *table.shape, "t"), table)
+
+
 def test_entropy_coder_picks_ans_for_skewed_symbols_and_zstd_for_huge_alphabets() -> None:
     rng = np.random.default_rng(0)
     skewed = rng.geometric(0.6, size=(20000, 1)).astype(np.int64)
