@@ -10,7 +10,6 @@ from hypothesis.extra.numpy import arrays
 
 from symgs_core.codec import ArchiveError
 from symgs_core.codec.masks import (
-    varint,
     MASKS,
     PACKED,
     RUNS,
@@ -19,6 +18,7 @@ from symgs_core.codec.masks import (
     encode_masks,
     max_raw_length,
     read_varints,
+    varint,
     write_varints,
 )
 
