@@ -46,20 +46,22 @@ def _compile(parallel: bool):
     return decorate
 
 
-@_compile(parallel=False)
-def bin_gaussians(means2d, radii, depths, width, height, tile_size):
+@_compile(parallel=True)
+def bin_gaussians(means2d, radii, depths, width, height, tile_size, threads):
     """Pixel rects [N, 4] int32 (empty: x0 > x1), tile offsets [T + 1] int64 and per-tile Gaussian ids [I] int32.
 
     Gaussians with radius 0 or no pixel centre inside their box are left out; the others enter each tile's list
-    front to back (stable sort by ``depths``).
+    front to back (stable sort by ``depths``). Every step runs on ``threads`` threads (numba's count, passed in so the
+    kernel stays cacheable) and the lists are the same for any count: the (Gaussian, tile) pairs are written in
+    front-to-back order, then counting-sorted by tile, each thread placing its share of the pairs after those of the
+    threads before it.
     """
     n = means2d.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     rects = np.empty((n, 4), dtype=np.int32)
-    visible = np.empty(n, dtype=np.int64)
-    count = 0
-    for g in range(n):
+    hits = np.zeros(n, dtype=np.int64)  # tiles each Gaussian touches
+    for g in prange(n):
         r = radii[g]
         u = means2d[g, 0]
         v = means2d[g, 1]
@@ -71,29 +73,89 @@ def bin_gaussians(means2d, radii, depths, width, height, tile_size):
         if not r > 0 or x0 > x1 or y0 > y1:
             x0, x1, y0, y1 = 1, 0, 1, 0
         else:
-            visible[count] = g
-            count += 1
+            hits[g] = (y1 // tile_size - y0 // tile_size + 1) * (x1 // tile_size - x0 // tile_size + 1)
         rects[g, 0] = x0
         rects[g, 1] = x1
         rects[g, 2] = y0
         rects[g, 3] = y1
-    visible = visible[:count]
-    front_to_back = visible[np.argsort(depths[visible], kind="mergesort")]
-    counts = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for g in front_to_back:
+    visible = np.flatnonzero(hits)
+    front_to_back = visible[_stable_order(depths[visible], threads)]
+    m = front_to_back.shape[0]
+    first = np.zeros(m + 1, dtype=np.int64)  # where each Gaussian's pairs start, front to back
+    for k in range(m):
+        first[k + 1] = first[k] + hits[front_to_back[k]]
+    pair_tile = np.empty(first[m], dtype=np.int64)
+    pair_id = np.empty(first[m], dtype=np.int32)
+    for k in prange(m):
+        g = front_to_back[k]
+        p = first[k]
         for ty in range(rects[g, 2] // tile_size, rects[g, 3] // tile_size + 1):
             for tx in range(rects[g, 0] // tile_size, rects[g, 1] // tile_size + 1):
-                counts[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    ids = np.empty(offsets[-1], dtype=np.int32)
-    cursor = offsets[:-1].copy()
-    for g in front_to_back:
-        for ty in range(rects[g, 2] // tile_size, rects[g, 3] // tile_size + 1):
-            for tx in range(rects[g, 0] // tile_size, rects[g, 1] // tile_size + 1):
-                t = ty * tiles_x + tx
-                ids[cursor[t]] = g
-                cursor[t] += 1
+                pair_tile[p] = ty * tiles_x + tx
+                pair_id[p] = g
+                p += 1
+    tiles = tiles_x * tiles_y
+    parts = max(min(threads, first[m] // 4096), 1)
+    bounds = np.array([first[m] * q // parts for q in range(parts + 1)], dtype=np.int64)
+    counts = np.zeros((parts, tiles), dtype=np.int64)
+    for q in prange(parts):
+        for p in range(bounds[q], bounds[q + 1]):
+            counts[q, pair_tile[p]] += 1
+    offsets = np.zeros(tiles + 1, dtype=np.int64)
+    cursor = np.empty((parts, tiles), dtype=np.int64)
+    at = 0
+    for t in range(tiles):
+        offsets[t] = at
+        for q in range(parts):
+            cursor[q, t] = at
+            at += counts[q, t]
+    offsets[tiles] = at
+    ids = np.empty(at, dtype=np.int32)
+    for q in prange(parts):
+        for p in range(bounds[q], bounds[q + 1]):
+            t = pair_tile[p]
+            ids[cursor[q, t]] = pair_id[p]
+            cursor[q, t] += 1
     return rects, offsets, ids
+
+
+@_compile(parallel=True)
+def _stable_order(keys, threads):
+    """``np.argsort(keys, kind="stable")`` (NaN last) on ``threads`` threads: each sorts a contiguous share, then
+    neighbouring runs are merged pairwise, the left run first among equal keys."""
+    n = keys.shape[0]
+    parts = max(min(threads, n // 16384), 1)
+    bounds = np.array([n * q // parts for q in range(parts + 1)], dtype=np.int64)
+    order = np.empty(n, dtype=np.int64)
+    for q in prange(parts):
+        lo = bounds[q]
+        local = np.argsort(keys[lo : bounds[q + 1]], kind="mergesort")
+        for j in range(local.shape[0]):
+            order[lo + j] = lo + local[j]
+    merged = np.empty(n, dtype=np.int64)
+    run = 1
+    while run < parts:
+        for pair in prange((parts + 2 * run - 1) // (2 * run)):
+            a = pair * 2 * run
+            lo, mid, hi = bounds[a], bounds[min(a + run, parts)], bounds[min(a + 2 * run, parts)]
+            i, j = lo, mid
+            for k in range(lo, hi):
+                # Take the right run's key only when it sorts strictly before the left's (NaN sorts after all).
+                if i < mid and (j >= hi or not _before(keys[order[j]], keys[order[i]])):
+                    merged[k] = order[i]
+                    i += 1
+                else:
+                    merged[k] = order[j]
+                    j += 1
+        order, merged = merged, order
+        run *= 2
+    return order
+
+
+@njit(inline="always")
+def _before(a, b):
+    """a sorts strictly before b, NaN last (numpy's order)."""
+    return a < b or (b != b and a == a)
 
 
 @_compile(parallel=False)

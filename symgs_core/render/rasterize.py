@@ -46,12 +46,13 @@ def bin_gaussians(
     """Bin Gaussians (means2d [N, 2], radii [N], 0 = culled; depths [N]) front to back into square tiles."""
     if tile_size <= 0:
         raise ValueError(f"tile_size must be positive, got {tile_size}")
+    threads = numba.get_num_threads()
     rects, offsets, ids = _kernels.bin_gaussians(
-        _np64(means2d), _np64(radii), _np64(depths), width, height, tile_size
+        _np64(means2d), _np64(radii), _np64(depths), width, height, tile_size, threads
     )
     # numba hands each thread one contiguous share of a parallel loop; balance the shares, or the thread that drew
     # the object's busy tiles finishes long after the others.
-    order = _kernels.balance_tiles(np.diff(offsets).astype(np.float64), numba.get_num_threads())
+    order = _kernels.balance_tiles(np.diff(offsets).astype(np.float64), threads)
     return Binning(rects, offsets, ids, order, width, height, tile_size)
 
 

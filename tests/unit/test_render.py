@@ -175,6 +175,40 @@ def test_gradients_have_the_same_bits_for_any_thread_count() -> None:
         assert torch.equal(single[name], multi[name]), name
 
 
+def _binning_oracle(means2d, radii, depths, width: int, height: int, tile: int) -> tuple[list, list[list[int]]]:
+    """Each Gaussian's pixel rect and each tile's list, front to back: the definition, one Gaussian at a time."""
+    rects, lists = [], [[] for _ in range(-(-width // tile) * -(-height // tile))]
+    for (u, v), r in zip(means2d.tolist(), radii.tolist()):
+        xs = [x for x in range(width) if abs(x + 0.5 - u) <= r]
+        ys = [y for y in range(height) if abs(y + 0.5 - v) <= r]
+        rects.append([xs[0], xs[-1], ys[0], ys[-1]] if r > 0 and xs and ys else [1, 0, 1, 0])
+    nan_last = lambda g: (math.isnan(depths[g]), 0.0 if math.isnan(depths[g]) else depths[g], g)  # noqa: E731
+    for g in sorted(range(len(rects)), key=nan_last):
+        x0, x1, y0, y1 = rects[g]
+        for ty in range(y0 // tile, y1 // tile + 1) if x0 <= x1 else ():
+            for tx in range(x0 // tile, x1 // tile + 1):
+                lists[ty * -(-width // tile) + tx].append(g)
+    return rects, lists
+
+
+@pytest.mark.parametrize("n", [7, 3000, 60000])  # 60000: three sorted runs to merge
+def test_binning_is_the_definition_for_any_thread_count(n: int) -> None:
+    import numpy as np
+
+    from symgs_core.render import _kernels
+
+    rng = np.random.default_rng(n)
+    means = rng.uniform(-4, 4, size=(n, 2)) + rng.uniform(0, [64, 48], size=(n, 2))
+    radii = np.where(rng.random(n) < 0.1, 0.0, rng.exponential(3.0, n))
+    depths = rng.integers(0, n // 5 + 2, n).astype(np.float64)  # many ties: their order is the Gaussians' own
+    depths[rng.random(n) < 0.05] = np.nan
+    rects, lists = _binning_oracle(means, radii, depths, 64, 48, 16)
+    for threads in (1, 2, 3, 8):
+        got_rects, offsets, ids = _kernels.bin_gaussians(means, radii, depths, 64, 48, 16, threads)
+        assert got_rects.tolist() == rects
+        assert [ids[offsets[t] : offsets[t + 1]].tolist() for t in range(len(lists))] == lists
+
+
 def test_empty_scene_renders_background() -> None:
     cam = make_camera()
     bg = torch.tensor([0.25, 0.5, 0.75])
@@ -280,7 +314,7 @@ def test_kernels_compile_without_a_writable_cache(tmp_path) -> None:
         import numpy as np
         import _kernels
         means = np.array([[4.0, 4.0]]); radii = np.array([3.0])
-        rects, offsets, ids = _kernels.bin_gaussians(means, radii, np.array([2.0]), 8, 8, 4)
+        rects, offsets, ids = _kernels.bin_gaussians(means, radii, np.array([2.0]), 8, 8, 4, 2)
         print(rects.tolist(), ids.tolist())
         """
     )
