@@ -31,6 +31,7 @@ T_MIN = 1e-4
 GEOM_GRADS = 6
 # Side of the pixel blocks a tile is split into.
 BLOCK = 4
+RADIX_BITS = 11  # bits of a depth key sorted per pass when binning (a 2048-bucket histogram per thread)
 # exp(power) is skipped when power < log(ALPHA_MIN / opacity) - CUT_MARGIN: the margin is far above rounding error,
 # so the skip never changes a decision that the exact test would make.
 CUT_MARGIN = 1e-6
@@ -121,41 +122,60 @@ def bin_gaussians(means2d, radii, depths, width, height, tile_size, threads):
 
 @_compile(parallel=True)
 def _stable_order(keys, threads):
-    """``np.argsort(keys, kind="stable")`` (NaN last) on ``threads`` threads: each sorts a contiguous share, then
-    neighbouring runs are merged pairwise, the left run first among equal keys."""
+    """``np.argsort(keys, kind="stable")`` of float64 ``keys`` (NaN last, -0.0 equal to 0.0) on ``threads`` threads.
+
+    An LSD radix sort: each key's bits are mapped to an unsigned integer that sorts as the float does, then counting
+    sorted ``RADIX_BITS`` at a time from the lowest, each pass stable (every thread places its share of the keys
+    after those of the threads before it). Passes over bits that no two keys differ in are skipped: depths in one
+    scene share their sign, exponent and leading mantissa bits.
+    """
     n = keys.shape[0]
+    top = np.uint64(1) << np.uint64(63)
+    bits = keys.view(np.uint64)
+    code = np.empty(n, dtype=np.uint64)
+    for i in prange(n):
+        x = keys[i]
+        if x != x:
+            code[i] = ~np.uint64(0)
+        elif x == 0.0:
+            code[i] = top
+        elif x > 0.0:
+            code[i] = bits[i] | top
+        else:
+            code[i] = ~bits[i]
+    differ = np.uint64(0)
+    for i in range(n):
+        differ |= code[i] ^ code[0]
+    order = np.arange(n)
     parts = max(min(threads, n // 16384), 1)
     bounds = np.array([n * q // parts for q in range(parts + 1)], dtype=np.int64)
-    order = np.empty(n, dtype=np.int64)
-    for q in prange(parts):
-        lo = bounds[q]
-        local = np.argsort(keys[lo : bounds[q + 1]], kind="mergesort")
-        for j in range(local.shape[0]):
-            order[lo + j] = lo + local[j]
-    merged = np.empty(n, dtype=np.int64)
-    run = 1
-    while run < parts:
-        for pair in prange((parts + 2 * run - 1) // (2 * run)):
-            a = pair * 2 * run
-            lo, mid, hi = bounds[a], bounds[min(a + run, parts)], bounds[min(a + 2 * run, parts)]
-            i, j = lo, mid
-            for k in range(lo, hi):
-                # Take the right run's key only when it sorts strictly before the left's (NaN sorts after all).
-                if i < mid and (j >= hi or not _before(keys[order[j]], keys[order[i]])):
-                    merged[k] = order[i]
-                    i += 1
-                else:
-                    merged[k] = order[j]
-                    j += 1
-        order, merged = merged, order
-        run *= 2
+    buckets = 1 << RADIX_BITS
+    mask = np.uint64(buckets - 1)
+    next_code = np.empty_like(code)
+    next_order = np.empty_like(order)
+    for shift in range(0, 64, RADIX_BITS):
+        s = np.uint64(shift)
+        if (differ >> s) & mask == 0:
+            continue
+        counts = np.zeros((parts, buckets), dtype=np.int64)
+        for q in prange(parts):
+            for p in range(bounds[q], bounds[q + 1]):
+                counts[q, (code[p] >> s) & mask] += 1
+        cursor = np.empty((parts, buckets), dtype=np.int64)
+        at = 0
+        for b in range(buckets):
+            for q in range(parts):
+                cursor[q, b] = at
+                at += counts[q, b]
+        for q in prange(parts):
+            for p in range(bounds[q], bounds[q + 1]):
+                b = (code[p] >> s) & mask
+                next_code[cursor[q, b]] = code[p]
+                next_order[cursor[q, b]] = order[p]
+                cursor[q, b] += 1
+        code, next_code = next_code, code
+        order, next_order = next_order, order
     return order
-
-
-@njit(inline="always")
-def _before(a, b):
-    """a sorts strictly before b, NaN last (numpy's order)."""
-    return a < b or (b != b and a == a)
 
 
 @_compile(parallel=False)

@@ -200,8 +200,9 @@ def test_binning_is_the_definition_for_any_thread_count(n: int) -> None:
     rng = np.random.default_rng(n)
     means = rng.uniform(-4, 4, size=(n, 2)) + rng.uniform(0, [64, 48], size=(n, 2))
     radii = np.where(rng.random(n) < 0.1, 0.0, rng.exponential(3.0, n))
-    depths = rng.integers(0, n // 5 + 2, n).astype(np.float64)  # many ties: their order is the Gaussians' own
-    depths[rng.random(n) < 0.05] = np.nan
+    depths = rng.integers(-n // 20, n // 5 + 2, n).astype(np.float64)  # many ties: their order is the Gaussians' own
+    for value, share in ((np.nan, 0.05), (-0.0, 0.02), (0.0, 0.02), (np.inf, 0.01), (-np.inf, 0.01)):
+        depths[rng.random(n) < share] = value
     rects, lists = _binning_oracle(means, radii, depths, 64, 48, 16)
     for threads in (1, 2, 3, 8):
         got_rects, offsets, ids = _kernels.bin_gaussians(means, radii, depths, 64, 48, 16, threads)
