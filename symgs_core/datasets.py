@@ -85,7 +85,7 @@ class DatasetError(ValueError):
 
     Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, malformed,
     unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
-    (``views.check_photographs``).
+    (``views.check_photographs``) and too_few_images (``views.dataset_views``).
     """
 
     def __init__(self, code: str, message: str) -> None:

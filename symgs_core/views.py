@@ -186,12 +186,16 @@ def dataset_views(
     evenly spaced, fit, and the other training images train. The object's pixels are where ``scene`` (the
     uncompressed upload) renders opaque."""
 
-    from .datasets import load_photographs
+    from .datasets import DatasetError, load_photographs
 
     scale, width = photo_scale(folder, resolution)
     photos = load_photographs(folder, split="train", scale=scale)
     if len(photos) < 2:
-        raise ValueError(f"{folder}: at least 2 training images are needed (one to train, one to fit)")
+        raise DatasetError(
+            "too_few_images",
+            f"{Path(folder).name}: {len(photos)} training photograph(s) besides the held-out test views; at least 2 "
+            "are needed (one to train, one to fit)",
+        )
     count = min(fit, len(photos) // 2)
     fit_index = {round((i + 0.5) * len(photos) / count - 0.5) for i in range(count)}
 

@@ -81,3 +81,25 @@ def test_photographs_of_another_scene_fail_as_images_mismatch(
     failed = api_a.get("/v1/jobs", params={"state": "failed"}).json()
     codes = {job["error"]["code"] for job in failed["items"]}
     assert "images_mismatch" in codes, failed
+
+
+def test_too_few_photographs_fail_as_too_few_images(api_a: httpx.Client, small_ply: bytes, stack, tmp_path) -> None:  # noqa: ANN001
+    """Two photographs and no test split leave one to train and none to fit once every 8th is held out: the worker
+    names that by its code (not ``internal_error``) and its message names no folder of the server."""
+    from tests.integration.test_service_uploads import _nerf, _zip
+
+    files = {"scene": ("s.ply", small_ply), "images": ("lego.zip", _zip(_nerf()))}
+    response = api_a.post("/v1/jobs", files=files, data={"params": json.dumps(TINY)})
+    assert response.status_code == 202, response.text
+    job = wait_for(api_a, response.json()["id"], finished, timeout=60)
+    assert job["state"] == "failed" and job["error"]["code"] == "too_few_images", job["error"]
+    assert job["error"]["message"].startswith("lego: "), job["error"]
+
+    for name, data in _nerf().items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(data)
+    scene = tmp_path / "s.ply"
+    scene.write_bytes(small_ply)
+    run = symgs(stack, "submit", str(scene), "--images", str(tmp_path / "lego"), "--params", json.dumps(TINY))
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "s.ply: failed: too_few_images: " in run.stdout, run.stdout
