@@ -181,6 +181,8 @@ def status(args: argparse.Namespace) -> int:
     console.print(f"{job.id}: {job.state}, stage {job.stage}, {job.progress:.0%} {job.message}")
     if job.metrics is not None or job.error is not None:
         console.print(jobs_table([(job.scene.filename, job)]))
+    if job.error is not None:  # in full: the table cuts long messages
+        console.print(f"{job.scene.filename}: {job.state}: {job.error.code}: {job.error.message}", soft_wrap=True)
     return 0
 
 
@@ -192,7 +194,8 @@ def fetch(args: argparse.Namespace) -> int:
     with _client(args) as client:
         job = client.job(args.job_id)
         if job.state != "succeeded":
-            raise CliError(f"job {job.id} is {job.state}; only succeeded jobs have results")
+            why = f" ({job.error.code}: {job.error.message})" if job.error is not None else ""
+            raise CliError(f"job {job.id} is {job.state}{why}; only succeeded jobs have results")
         for path in client.fetch(args.job_id, args.output):
             print(path)
     return 0

@@ -103,3 +103,21 @@ def test_too_few_photographs_fail_as_too_few_images(api_a: httpx.Client, small_p
     run = symgs(stack, "submit", str(scene), "--images", str(tmp_path / "lego"), "--params", json.dumps(TINY))
     assert run.returncode == 1, run.stdout + run.stderr
     assert "s.ply: failed: too_few_images: " in run.stdout, run.stdout
+
+
+def test_status_and_fetch_of_a_failed_job_name_its_code(api_a: httpx.Client, small_ply: bytes, stack, tmp_path) -> None:  # noqa: ANN001
+    """``symgs status`` and ``symgs fetch`` of a job the worker failed name its code in full, whatever the width of
+    the terminal (the status table cuts its cells)."""
+    response = api_a.post(
+        "/v1/jobs", files={"scene": ("nan.ply", _nan_positions(small_ply))}, data={"params": json.dumps(TINY)}
+    )
+    assert response.status_code == 202, response.text
+    job = wait_for(api_a, response.json()["id"], finished, timeout=60)
+    assert job["error"]["code"] == "non_finite", job
+
+    shown = symgs(stack, "status", job["id"])
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    assert f"nan.ply: failed: non_finite: {job['error']['message']}" in shown.stdout, shown.stdout
+    fetched = symgs(stack, "fetch", job["id"], "-o", str(tmp_path / "out"))
+    assert fetched.returncode == 2, fetched.stdout + fetched.stderr
+    assert f"is failed (non_finite: {job['error']['message']})" in fetched.stderr, fetched.stderr
