@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from python_multipart.exceptions import FormParserError
-from python_multipart.multipart import MultipartParser, parse_options_header
+from python_multipart.multipart import MultipartParser, MultipartState, parse_options_header
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
@@ -140,6 +140,9 @@ async def receive_upload(request: Request, folder: Path, *, max_bytes: int) -> U
         if not too_large and receiver.error is None:
             parser.finalize()
             receiver.flush()
+            if parser.state not in (MultipartState.START, MultipartState.END):  # START: an empty body, no scene
+                # python-multipart's finalize does not check this: a body cut short would pass with its last part cut
+                receiver.fail(ApiError(422, "bad_multipart", "the multipart body ends before its closing boundary"))
     except FormParserError as exc:
         raise ApiError(422, "bad_multipart", f"the multipart body is malformed ({exc})") from None
     except ClientDisconnect:

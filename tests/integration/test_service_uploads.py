@@ -159,6 +159,26 @@ def test_request_shape_errors(api_a: httpx.Client, small_ply: bytes) -> None:
     assert (extra.status_code, extra.json()["error"]["code"]) == (422, "unknown_field")
 
 
+def test_a_body_cut_before_its_closing_boundary_is_refused(api_a: httpx.Client, small_ply: bytes) -> None:
+    """A multipart body that ends inside its last part is refused, not stored as it is: here the images, a tar whose
+    end, cut off, is only padding, so it would read as a whole dataset."""
+    images = io.BytesIO()
+    with tarfile.open(fileobj=images, mode="w") as tf:
+        for name, data in _nerf().items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    files = {"scene": ("s.ply", small_ply), "images": ("lego.tar", images.getvalue())}
+    request = httpx.Request("POST", "http://x/", files=files, data={"params": json.dumps(TINY)})
+    body, content_type = request.read(), request.headers["content-type"]
+    for cut in (body[: body.rindex(b"\r\n--")], body[:-1000]):
+        response = api_a.post("/v1/jobs", content=cut, headers={"content-type": content_type})
+        assert response.status_code == 422, response.text
+        assert response.json()["error"]["code"] == "bad_multipart", response.text
+    empty = api_a.post("/v1/jobs", content=b"", headers={"content-type": content_type})
+    assert (empty.status_code, empty.json()["error"]["code"]) == (422, "missing_scene")
+
+
 def test_service_stays_healthy_and_accepts_a_dataset(
     api_a: httpx.Client, small_ply: bytes, scene_path: Path, stack  # noqa: ANN001
 ) -> None:
