@@ -27,6 +27,8 @@ class JobParams(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        strict=True,  # a value of another type is refused, not coerced: true is no count of steps, "7" no seed
+        # (psnr_budget excepted: there a string reads as a number, and "nan" is refused as not finite)
         json_schema_extra={
             "examples": [
                 {},
@@ -38,7 +40,8 @@ class JobParams(BaseModel):
 
     preset: Preset = Field(DEFAULT_PRESET, description=f"what the job may spend and must keep. {_PRESETS_TEXT}")
     psnr_budget: float | None = Field(
-        None, ge=0, le=60, allow_inf_nan=False, description="dB of PSNR the job may cost (default: the preset's)"
+        None, ge=0, le=60, allow_inf_nan=False, strict=False,
+        description="dB of PSNR the job may cost (default: the preset's)",
     )
     max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
     iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")

@@ -121,6 +121,8 @@ CASES = {
     "params out of range": (lambda ply: (ply, None, '{"iterations": -5}'), 422, "bad_params"),
     "params with an unknown field": (lambda ply: (ply, None, '{"rm": "-rf"}'), 422, "bad_params"),
     "params not an object": (lambda ply: (ply, None, "[1, 2]"), 422, "bad_params"),
+    "params with a boolean for a count": (lambda ply: (ply, None, '{"iterations": true}'), 422, "bad_params"),
+    "params with a string for a number": (lambda ply: (ply, None, '{"seed": "7"}'), 422, "bad_params"),
     "zip with ../ path": (lambda ply: (ply, _zip({**_nerf(), "../../evil.txt": b"x"}), None), 422, "unsafe_entry"),
     "zip with absolute path": (lambda ply: (ply, _zip({**_nerf(), "/etc/cron.d/x": b"x"}), None), 422, "unsafe_entry"),
     "zip with a symlink entry": (lambda ply: (ply, _zip(_nerf(), {"lego/link": "/etc/passwd"}), None),
