@@ -250,14 +250,19 @@ def _delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None
         store.delete(job_id)
 
 
-def failure_of(exc: BaseException) -> tuple[str, str]:
-    """The code and message a failed job records: an input error keeps its own code (the client is told what is
-    wrong with what it sent); anything else is ``internal_error``."""
+def input_errors() -> tuple[type[ValueError], ...]:
+    """The errors that are the input's, each with a machine-readable ``code``: what the client sent must change."""
     from symgs_core.datasets import DatasetError
     from symgs_core.ply_header import PlyError
 
-    if isinstance(exc, (PlyError, DatasetError, JobInputError)):
-        return exc.code, str(exc)
+    return PlyError, DatasetError, JobInputError
+
+
+def failure_of(exc: BaseException) -> tuple[str, str]:
+    """The code and message a failed job records: an input error keeps its own code (the client is told what is
+    wrong with what it sent); anything else is ``internal_error``."""
+    if isinstance(exc, input_errors()):
+        return exc.code, str(exc)  # type: ignore[attr-defined]
     return "internal_error", str(exc) or type(exc).__name__
 
 

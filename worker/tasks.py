@@ -10,7 +10,7 @@ from celery import Task
 from celery.exceptions import SoftTimeLimitExceeded
 
 from .celery_app import COMPRESS_TASK, app
-from .runner import failure_of, mark_failed, run_job
+from .runner import failure_of, input_errors, mark_failed, run_job
 from .settings import get_settings
 from .storage import storage_from_settings
 from .store import JobStore
@@ -49,7 +49,8 @@ class CompressTask(Task):
         )  # fmt: skip
 
 
-@app.task(name=COMPRESS_TASK, base=CompressTask, bind=True)
+# Input errors are expected: Celery logs them in a line, without a traceback; ``on_failure`` records their code.
+@app.task(name=COMPRESS_TASK, base=CompressTask, bind=True, throws=input_errors())
 def compress_job(self: CompressTask, job_id: str) -> str:
     settings = get_settings()
     queue = (self.request.delivery_info or {}).get("routing_key", "cpu")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 
 import httpx
 
@@ -19,7 +20,18 @@ def _nan_positions(ply: bytes) -> bytes:
     return ply[:body] + struct.pack("<f", float("nan")) + ply[body + 4 :]
 
 
+def _logged_since(stack, sizes: dict, words: str, timeout: float = 10) -> str:  # noqa: ANN001
+    """What the workers logged past ``sizes`` (log path -> bytes), once ``words`` is among it or time runs out."""
+    deadline = time.monotonic() + timeout
+    while True:
+        added = "".join(w.log.read_bytes()[sizes.get(w.log, 0) :].decode(errors="replace") for w in stack.workers)
+        if words in added or time.monotonic() > deadline:
+            return added
+        time.sleep(0.1)
+
+
 def test_nan_positions_fail_as_non_finite(api_a: httpx.Client, small_ply: bytes, stack, tmp_path) -> None:  # noqa: ANN001
+    sizes = {w.log: w.log.stat().st_size for w in stack.workers}
     response = api_a.post(
         "/v1/jobs", files={"scene": ("nan.ply", _nan_positions(small_ply))}, data={"params": json.dumps(TINY)}
     )
@@ -27,6 +39,9 @@ def test_nan_positions_fail_as_non_finite(api_a: httpx.Client, small_ply: bytes,
     job = wait_for(api_a, response.json()["id"], finished, timeout=60)
     assert job["state"] == "failed" and job["error"]["code"] == "non_finite", job["error"]
     assert "NaN" in job["error"]["message"] and "x (1 values)" in job["error"]["message"]
+    # The input's fault is logged by the worker in a line, not as a crash with its traceback.
+    logged = _logged_since(stack, sizes, "raised expected")
+    assert "raised expected" in logged and "Traceback" not in logged, logged
 
     path = tmp_path / "nan.ply"
     path.write_bytes(_nan_positions(small_ply))
