@@ -208,9 +208,10 @@ def _run_leased(
     with storage.workspace(owner=record.owner, job_id=job_id) as work:
         folder = work.folder
         images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
+        scene = folder / "upload" / "scene.ply"
         try:
             result = compress(
-                folder / "upload" / "scene.ply",
+                scene,
                 images=images,
                 config=config,
                 progress=_Progress(store, job_id, work.save_checkpoints),
@@ -222,13 +223,15 @@ def _run_leased(
                 return "lost"
             store.transition(job_id, "cancelled", message="cancelled by the client")
             return "cancelled"
+        except input_errors() as exc:
+            raise _as_uploaded(exc, scene.name, record.scene.get("filename") or scene.name) from None
         work.save_checkpoints()
         if result.images and settings.peer_seconds > 0 and not heartbeat.lost.is_set():
             from .peers import peer_charts
 
             store.progress(job_id, stage="peers", level=None, fraction=1.0, message="running the peers' formats")
-            result.images.update(peer_charts(folder / "upload" / "scene.ply", images, result.report,
-                                             seconds=settings.peer_seconds, work=folder / "peers"))  # fmt: skip
+            result.images.update(peer_charts(scene, images, result.report, seconds=settings.peer_seconds,
+                                             work=folder / "peers"))  # fmt: skip
     if heartbeat.lost.is_set():
         return "lost"  # the worker that took the job over writes the same files
     skipped = _write_results(storage, record, result)
@@ -256,6 +259,14 @@ def input_errors() -> tuple[type[ValueError], ...]:
     from symgs_core.ply_header import PlyError
 
     return PlyError, DatasetError, JobInputError
+
+
+def _as_uploaded(exc: ValueError, stored: str, uploaded: str) -> ValueError:
+    """``exc`` naming the scene as the client named its upload, not as the job's storage keeps it."""
+    message = str(exc)
+    if message.startswith(f"{stored}:"):
+        message = uploaded + message[len(stored) :]
+    return type(exc)(exc.code, message)  # type: ignore[attr-defined]
 
 
 def failure_of(exc: BaseException) -> tuple[str, str]:

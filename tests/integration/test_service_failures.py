@@ -39,6 +39,7 @@ def test_nan_positions_fail_as_non_finite(api_a: httpx.Client, small_ply: bytes,
     job = wait_for(api_a, response.json()["id"], finished, timeout=60)
     assert job["state"] == "failed" and job["error"]["code"] == "non_finite", job["error"]
     assert "NaN" in job["error"]["message"] and "x (1 values)" in job["error"]["message"]
+    assert job["error"]["message"].startswith("nan.ply: "), job["error"]  # the name it was sent by, not stored as
     # The input's fault is logged by the worker in a line, not as a crash with its traceback.
     logged = _logged_since(stack, sizes, "raised expected")
     assert "raised expected" in logged and "Traceback" not in logged, logged
