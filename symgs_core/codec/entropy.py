@@ -49,6 +49,11 @@ def _pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=cores, thread_name_prefix="entropy")
 
 
+# A forked child (a Celery pool process) inherits the pool without its threads, and would wait on it forever.
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_pool.cache_clear)
+
+
 def _zigzag(v: int) -> int:
     return 2 * v if v >= 0 else -2 * v - 1
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import hashlib
 import math
+import multiprocessing
+import os
 
 import numpy as np
 import pytest
@@ -65,6 +67,20 @@ def test_a_large_table_codes_its_columns_in_parallel_to_the_same_bytes(monkeypat
     monkeypatch.setattr(entropy, "PARALLEL_SYMBOLS", table.size + 1)
     assert encode_table(table) == parallel
     assert np.array_equal(decode_table(parallel, *table.shape, "t"), table)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX")
+def test_a_process_forked_after_coding_in_parallel_codes_in_parallel_too() -> None:
+    from symgs_core.codec import entropy
+
+    table = np.random.default_rng(5).integers(0, 100, size=(entropy.PARALLEL_SYMBOLS, 3))
+    coded = encode_table(table)  # the parent's pool now has its threads
+    child = multiprocessing.get_context("fork").Process(target=lambda: os._exit(int(encode_table(table) != coded)))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+    assert child.exitcode == 0  # None: it hung on the threads it did not inherit
 
 
 def test_entropy_coder_picks_ans_for_skewed_symbols_and_zstd_for_huge_alphabets() -> None:
