@@ -145,10 +145,12 @@ def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 8, sh_r
     xyzw = np.stack([wxyz[:, 1], -wxyz[:, 2], -wxyz[:, 3], wxyz[:, 0]], axis=1)
     rotations = _pack_rotations(xyzw, version)
     rest = t["sh_rest"] * SH_FLIP[:k, None]  # [N, K, 3]: coefficient-major, channel inner
+    band1 = min(k, 3)  # widths spelt out: reshape(n, -1) cannot infer them for an empty scene
     sh = np.concatenate(
-        [_quantize_sh(rest[:, :3], sh1_bits).reshape(n, -1), _quantize_sh(rest[:, 3:], sh_rest_bits).reshape(n, -1)],
+        [_quantize_sh(rest[:, :3], sh1_bits).reshape(n, 3 * band1),
+         _quantize_sh(rest[:, 3:], sh_rest_bits).reshape(n, 3 * (k - band1))],
         axis=1,
-    )
+    )  # fmt: skip
     blocks = [positions.tobytes(), alphas.tobytes(), colors.tobytes(), scales.tobytes(), rotations.tobytes(),
               sh.tobytes()]  # fmt: skip
     degree = scene.sh_degree
@@ -219,7 +221,7 @@ def read_spz(data: bytes) -> GaussianScene:
     alpha = np.clip(np.frombuffer(raw[1], dtype=np.uint8) / 255.0, 1e-6, 1 - 1e-6)
     colors = (np.frombuffer(raw[2], dtype=np.uint8).reshape(n, 3) / 255.0 - 0.5) / COLOR_SCALE
     scales = np.frombuffer(raw[3], dtype=np.uint8).reshape(n, 3) / 16.0 - 10.0
-    xyzw = _unpack_rotations(np.frombuffer(raw[4], dtype=np.uint8).reshape(n, -1), version)
+    xyzw = _unpack_rotations(np.frombuffer(raw[4], dtype=np.uint8).reshape(n, 3 if version == 2 else 4), version)
     wxyz = np.stack([xyzw[:, 3], xyzw[:, 0], -xyzw[:, 1], -xyzw[:, 2]], axis=1)
     sh = (np.frombuffer(raw[5], dtype=np.uint8).reshape(n, k, 3) - 128.0) / 128.0 * SH_FLIP[:k, None]
 

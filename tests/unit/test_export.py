@@ -95,6 +95,15 @@ def test_spz_position_step_follows_the_scene_size(spread: float, bits: int) -> N
     assert error <= 0.5 / (1 << bits) + 4 * spread * 2**-24  # the step, and float32 rounding at the reach
 
 
+@pytest.mark.parametrize("version", [2, 3, 4])
+def test_spz_round_trips_an_empty_scene(version: int) -> None:
+    """The format holds no Gaussians (an archive of none decodes to such a scene): written and read back, its SH
+    degree kept, rather than a numpy reshape error."""
+    for degree in (0, 3):
+        back = read_spz(write_spz(GaussianScene.empty(degree), version=version))
+        assert (len(back), back.sh_degree) == (0, degree)
+
+
 def test_spz_keeps_sh_at_8_bits() -> None:
     scene = scene_for_export(n=300, degree=3, seed=4)
     back = read_spz(write_spz(scene))
