@@ -70,6 +70,8 @@ def write_compressed_ply(scene: GaussianScene) -> bytes:
     """The `.compressed.ply` bytes of ``scene`` (stored in ``compressed_ply_order``)."""
     if len(scene) == 0:
         raise ValueError("a compressed PLY needs at least one Gaussian")
+    if not all(torch.isfinite(v).all() for v in scene.tensors().values()):  # NaN would write arbitrary bytes
+        raise ValueError("a compressed PLY stores finite attributes only")
     s = scene.select(compressed_ply_order(scene))
     t = {k: v.detach().cpu().double().numpy() for k, v in s.tensors().items()}
     n, k = len(s), s.sh_rest.shape[1]

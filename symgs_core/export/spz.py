@@ -126,6 +126,8 @@ def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 8, sh_r
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError(f"SH bits must be in 1..8, got sh1_bits={sh1_bits} sh_rest_bits={sh_rest_bits}")
     t = {k: v.detach().cpu().double().numpy() for k, v in scene.tensors().items()}
+    if not all(np.isfinite(v).all() for v in t.values()):  # NaN would cast to arbitrary bytes, an infinity raise
+        raise ValueError("spz: the format stores finite attributes only")
     n, k = len(scene), scene.sh_rest.shape[1]
     flip = np.array([1.0, -1.0, -1.0])
     means = t["means"] * flip

@@ -134,6 +134,18 @@ def test_spz_sh_flip_matches_a_reflection_of_y_and_z() -> None:
     assert torch.allclose(stored_colour, eval_sh(coeffs[None].expand(64, -1, -1), dirs), atol=0.05)
 
 
+@pytest.mark.parametrize("writer", [write_spz, write_compressed_ply])
+@pytest.mark.parametrize("attribute", ["means", "quats", "scales", "opacities", "sh_dc", "sh_rest"])
+def test_writers_refuse_non_finite_attributes(writer, attribute: str) -> None:  # noqa: ANN001
+    """As the SOG and glTF writers do: NaN used to be written as arbitrary bytes (a file that reads back, wrong or
+    non-finite), an infinite position raised OverflowError."""
+    for value in (float("nan"), float("inf")):
+        scene = scene_for_export(n=20, degree=1)
+        scene.tensors()[attribute].view(-1)[5] = value
+        with pytest.raises(ValueError, match="finite attributes only"):
+            writer(scene)
+
+
 def test_compressed_ply_round_trip_within_chunk_precision() -> None:
     scene = scene_for_export(n=1000, degree=2)
     ours = read_compressed_ply(write_compressed_ply(scene))
