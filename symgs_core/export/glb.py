@@ -71,7 +71,10 @@ def write_glb(scene: GaussianScene) -> bytes:
     if not all(np.isfinite(v).all() for v in t.values()):
         raise ValueError("a glTF file stores finite attributes only")
     turn = np.array([-1.0, -1.0, 1.0])
-    q = _turn_quats(t["quats"] / np.maximum(np.linalg.norm(t["quats"], axis=1, keepdims=True), 1e-12))
+    norm = np.linalg.norm(t["quats"], axis=1, keepdims=True)
+    # A zero quaternion is the identity, as the PLY reader repairs it: the extension asks for unit rotations.
+    unit = np.where(norm < 1e-12, np.array([1.0, 0.0, 0.0, 0.0]), t["quats"] / np.maximum(norm, 1e-12))
+    q = _turn_quats(unit)
     opacity = 1.0 / (1.0 + np.exp(-t["opacities"]))
     k = scene.sh_rest.shape[1]
     rest = t["sh_rest"] * SH_TURN[:k, None]

@@ -151,3 +151,16 @@ def test_a_scale_beyond_float32_is_refused_not_written_as_infinity() -> None:
     scales[3, 1] = 100.0  # finite as a log-scale, exp(100) is not a float32
     with pytest.raises(ValueError, match="SCALE overflows float32"):
         write_glb(scene.with_(scales=scales))
+
+
+def test_a_zero_quaternion_is_written_as_the_identity() -> None:
+    """The PLY reader's repair: a zero quaternion stands for no rotation. It was written as (0, 0, 0, 0), which the
+    extension's unit rotations exclude and a viewer normalises to NaN."""
+    scene = scene_for_export(n=20, degree=0)
+    quats = scene.quats.clone()
+    quats[4] = 0.0
+    document, binary = read_glb_document(write_glb(scene.with_(quats=quats)))
+    rotation = accessor(document, binary, f"{EXTENSION}:ROTATION")
+    assert np.allclose(np.linalg.norm(rotation, axis=1), 1.0, atol=1e-6)
+    back = read_glb(write_glb(scene.with_(quats=quats)))
+    assert torch.allclose(back.quats[4].abs(), torch.tensor([1.0, 0.0, 0.0, 0.0]), atol=1e-6)
