@@ -107,11 +107,12 @@ MIN_SPAN_BITS = 10
 
 def _fractional_bits(means: np.ndarray) -> int:
     """Fractional bits for ``means`` [N, 3] (RUB): a step of 2^-18 of the extent, at least 12 bits, at most 24, then
-    fewer while the scene's reach would not fit 24 signed bits."""
+    fewer while the scene's reach would not fit 24 signed bits; a scene of no extent the most its reach allows."""
     if not means.size:
         return REFERENCE_BITS
     extent = float(np.ptp(means, axis=0).max())
-    wanted = FINEST_RELATIVE_BITS - math.floor(math.log2(extent)) if extent > 0 else REFERENCE_BITS
+    # No extent (one Gaussian, or all at one point): every row is the same, so the finest step costs no bytes.
+    wanted = FINEST_RELATIVE_BITS - math.floor(math.log2(extent)) if extent > 0 else MAX_BITS
     bits = min(max(wanted, REFERENCE_BITS), MAX_BITS)
     reach = float(np.abs(means).max())
     while bits > 0 and reach * (1 << bits) >= (1 << 23) - 1:
