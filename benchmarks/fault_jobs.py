@@ -1,6 +1,6 @@
 """Jobs through worker kills and Redis restarts: how many accepted jobs end without their result.
 
-A local stack (``service.cli.stack.LocalStack``: redis-server with its append-only file synced on every write, the
+A local stack (``service.cli.stack.LocalStack``: Redis with its append-only file synced on every write, the
 API, CPU workers) runs ``--jobs`` small jobs, all of the same scene and parameters, submitted one every ``--pace``
 seconds by a client that retries with an Idempotency-Key whenever the API answers 503 or cannot be reached.
 Meanwhile, every ``--every`` seconds, one fault in turn: a worker and its pool killed with SIGKILL (a replacement

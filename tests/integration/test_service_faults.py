@@ -4,8 +4,6 @@ client submits and polls; every accepted job ends succeeded, with the same resul
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
 from benchmarks.fault_jobs import fault_stack, run, scene_bytes
@@ -14,8 +12,6 @@ pytestmark = pytest.mark.integration
 
 
 def test_no_job_is_lost_to_worker_kills_and_redis_restarts() -> None:
-    if shutil.which("redis-server") is None:
-        pytest.skip("redis-server is not installed (apt-get install redis-server)")
     stack = fault_stack(workers=1, lease_s=3)
     try:
         outcome = run(stack, scene_bytes(), jobs=4, kills=1, restarts=2, every=4, pace=2, timeout=150)
