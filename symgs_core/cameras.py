@@ -111,14 +111,23 @@ def near_for(radius: float) -> float:
     return min(NEAR_PLANE, NEAR_SHARE * radius)
 
 
-def scene_bounds(means: Tensor) -> tuple[Tensor, float]:
-    """Robust centre (median) [3] and radius (95th percentile distance) of a point set [N, 3]."""
+SPLAT_SIGMAS = 5.0
+
+
+def scene_bounds(means: Tensor, scales: Tensor | None = None) -> tuple[Tensor, float]:
+    """Robust centre (median) [3] and radius (95th percentile distance) of a point set [N, 3].
+
+    With the Gaussians' log-scales [N, 3], the radius is at least ``SPLAT_SIGMAS`` of the median Gaussian's largest
+    sigmas: a scene of one Gaussian, or of a few at one point, is framed whole rather than seen from inside its splat
+    (a camera at the nearest of ``views.DISTANCES`` then sees 3.7 sigmas across half its frame)."""
     if means.shape[0] == 0:
         return torch.zeros(3), 1.0
     center = means.median(dim=0).values
     dist = (means - center).norm(dim=-1)
     radius = float(torch.quantile(dist.float(), 0.95)) if dist.numel() > 1 else 0.0
-    # A point set of no size (one Gaussian, or all at one point) still gets cameras a float apart from its centre.
+    if scales is not None:
+        radius = max(radius, SPLAT_SIGMAS * float(scales.detach().cpu().max(dim=-1).values.median().exp()))
+    # A point set of no size still gets cameras a float apart from its centre.
     return center, max(radius, 1e-6 * max(1.0, float(center.abs().max())))
 
 

@@ -161,7 +161,7 @@ def self_supervised_views(
     seed: int = 0,
 ) -> ViewSet:
     """The three sets, targets rendered from ``scene``; each set's rig is turned apart by its own rotation."""
-    center, radius = scene_bounds(scene.means.detach().cpu())
+    center, radius = scene_bounds(scene.means.detach().cpu(), scene.scales)
     counts = {"training": train, "fitting": fit, "evaluation": eval}
     sizes = {"training": resolution, "fitting": eval_resolution, "evaluation": eval_resolution}
     sets, targets = [], []

@@ -84,7 +84,7 @@ def describe(path: Path) -> dict[str, Any]:
     scene, report = _read(path)
     means = scene.means.double()
     empty = len(scene) == 0
-    center, radius = scene_bounds(scene.means)
+    center, radius = scene_bounds(scene.means, scene.scales)
     return {
         "file": str(path),
         "count": report.count,
@@ -188,7 +188,7 @@ def _pick_camera(args: argparse.Namespace, scene: Any) -> tuple[Any, Any, str]:
         raise CliError("--up must not be the zero vector")
     up = (up[0] / norm, up[1] / norm, up[2] / norm)
     width, height = _size(args.width, args.height, (DEFAULT_ORBIT_SIZE, DEFAULT_ORBIT_SIZE))
-    center, radius = scene_bounds(scene.means)
+    center, radius = scene_bounds(scene.means, scene.scales)
     camera = orbit_cameras(center, radius, args.views, width, height, up=up)[args.orbit]
     return camera, None, f"orbit camera {args.orbit} of {args.views}"
 

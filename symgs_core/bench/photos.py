@@ -33,7 +33,7 @@ def photographed(
     common = {"seed": seed, "sh_degree": sh_degree}
     upload = synthetic_scene(kind, n=n, capture=capture, sample_seed=2 * seed + 1, **common).scene
     truth = synthetic_scene(kind, n=TRUTH_DENSITY * n, capture="twins", sample_seed=2 * seed + 2, **common).scene
-    centre, radius = scene_bounds(truth.means)
+    centre, radius = scene_bounds(truth.means, truth.scales)
     for split, count, rig in (("train", photos, 11), ("test", tests, 12)):
         cameras = viewer_cameras(centre, radius, count, resolution, seed=1000 * seed + rig, name=split)
         with torch.no_grad():

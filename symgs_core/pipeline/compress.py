@@ -149,7 +149,7 @@ def compress(
         reference, floor = math.inf, config.self_supervised_floor()
     report.timed("views", time.perf_counter() - t0)
 
-    _, radius = scene_bounds(source.means.detach().cpu())
+    _, radius = scene_bounds(source.means.detach().cpu(), source.scales)
     # What the archive carries besides the scene; the same job gives the same bytes whichever door it came by.
     meta = {"input_gaussians": len(source), "sh_degree": source.sh_degree,
             "coordinate_convention": COORDINATE_CONVENTION}  # fmt: skip

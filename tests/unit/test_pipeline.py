@@ -445,6 +445,23 @@ def test_a_scene_in_memory_is_repaired_and_converted_as_its_file_would_be(tmp_pa
     assert compress(half, config=FAST).archive == compress(tmp_path / "half.ply", config=FAST).archive
 
 
+@pytest.mark.parametrize("count", [1, 3])
+def test_gaussians_at_one_point_are_framed_whole_not_seen_from_inside(count: int):
+    """The job's cameras keep their distance from a scene of no extent by the Gaussians' own size: each view holds
+    the whole splat, the frame's border clear of it."""
+    from symgs_core.render import render
+
+    scene = synthetic_scene("global", n=200, seed=0, sh_degree=0).scene.select(torch.arange(count))
+    scene = scene.with_(means=torch.zeros_like(scene.means) + 0.3, scales=torch.full_like(scene.scales, -3.0),
+                        opacities=torch.full_like(scene.opacities, 3.0))  # fmt: skip
+    views = self_supervised_views(scene, train=1, fit=2, eval=2, resolution=32, eval_resolution=32,
+                                  background=torch.zeros(3))  # fmt: skip
+    for view in [*views.fit, *views.eval]:
+        alpha = render(scene, view.camera).alpha
+        border = torch.cat([alpha[0], alpha[-1], alpha[:, 0], alpha[:, -1]])
+        assert alpha.max() > 0.5 and border.max() < 0.05
+
+
 @pytest.mark.parametrize("at", [0.0, 1e15])
 def test_gaussians_all_at_one_point_are_compressed(at: float):
     """A point set of no size gets cameras a float apart from it, wherever it lies (far from the origin too)."""
