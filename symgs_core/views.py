@@ -205,7 +205,7 @@ def dataset_views(
     targets = [_photo_target(scene, p) for p in photos]
     train_targets = [t for i, t in enumerate(targets) if i not in fit_index]
     fit_targets = [t for i, t in enumerate(targets) if i in fit_index]
-    eval_targets = _eval_targets(folder, scene, eval=eval, resolution=resolution)
+    eval_targets = _eval_targets(folder, scene, eval=eval, scale=scale)
     sets = (described("training", len(train_targets)), described("fitting", len(fit_targets)),
             described("evaluation", len(eval_targets)))  # fmt: skip
     return _laid((train_targets, fit_targets, eval_targets), background, sets)
@@ -285,10 +285,10 @@ def _photo_target(scene: GaussianScene, photograph: Photograph) -> PhotoTarget:
     return PhotoTarget(on_device, render(scene, on_device.camera).alpha >= OBJECT_ALPHA)
 
 
-def _eval_targets(folder: str | Path, scene: GaussianScene, *, eval: int, resolution: int) -> list[PhotoTarget]:
+def _eval_targets(folder: str | Path, scene: GaussianScene, *, eval: int, scale: float) -> list[PhotoTarget]:
+    """The test split's photographs at the training photographs' ``scale`` (``photo_scale``)."""
     from .datasets import load_photographs
 
-    scale, _ = photo_scale(folder, resolution)
     return [_photo_target(scene, p) for p in load_photographs(folder, split="test", max_views=eval, scale=scale)]
 
 
@@ -296,7 +296,8 @@ def dataset_eval_views(
     folder: str | Path, scene: GaussianScene, *, eval: int, resolution: int, background: Tensor
 ) -> list[View]:
     """The evaluation set of ``dataset_views`` alone (its test split), without loading the training photographs."""
-    return [target.on(background) for target in _eval_targets(folder, scene, eval=eval, resolution=resolution)]
+    scale, _ = photo_scale(folder, resolution)
+    return [target.on(background) for target in _eval_targets(folder, scene, eval=eval, scale=scale)]
 
 
 @torch.no_grad()
