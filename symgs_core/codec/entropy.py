@@ -23,35 +23,19 @@ length against the table's known shape before it allocates.
 
 from __future__ import annotations
 
-import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from .errors import ArchiveError
 from .masks import read_varints, varint, write_varints
-from .section import zstd_compress, zstd_decompress_exact
+from .section import coding_pool, zstd_compress, zstd_decompress_exact
 
 MAX_ALPHABET = 1 << 22  # ANS histograms beyond this go to zstd: the histogram would cost more than it saves
 COLUMNS, ROWS = 0, 1
 ZSTD, ANS = 0, 1
 RAW, DELTA = 0, 1
 _WIDTHS = {1: np.uint8, 2: np.uint16, 4: np.uint32}
-# Tables of at least this many symbols code their columns on every core: zstd and numpy release the GIL, so the
-# threads run side by side, and each column's stream is the same bytes whichever thread wrote it.
+# Tables of at least this many symbols code their columns on every core (``coding_pool``).
 PARALLEL_SYMBOLS = 1 << 15
-
-
-@functools.cache
-def _pool() -> ThreadPoolExecutor:
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return ThreadPoolExecutor(max_workers=cores, thread_name_prefix="entropy")
-
-
-# A forked child (a Celery pool process) inherits the pool without its threads, and would wait on it forever.
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_pool.cache_clear)
 
 
 def _zigzag(v: int) -> int:
@@ -121,8 +105,8 @@ def encode_table(table: np.ndarray, level: int = 9) -> bytes:
     if table.size and (int(np.abs(table).max()) >= 1 << 30):
         raise ValueError(f"symbols must stay within +-2^30, got magnitude {int(np.abs(table).max())}")
     if table.size >= PARALLEL_SYMBOLS and table.shape[1] > 1:
-        rows = _pool().submit(_rows, table, level)
-        parts = list(_pool().map(_column, table.T, [level] * table.shape[1]))
+        rows = coding_pool().submit(_rows, table, level)
+        parts = list(coding_pool().map(_column, table.T, [level] * table.shape[1]))
         rows = rows.result()
     else:
         parts, rows = [_column(table[:, c], level) for c in range(table.shape[1])], _rows(table, level)

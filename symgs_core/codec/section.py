@@ -10,6 +10,9 @@ announced.
 
 from __future__ import annotations
 
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -54,6 +57,19 @@ class SectionCodec(Protocol):
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         """The array of ``shape``; ArchiveError("corrupt_section") when the payload disagrees. Runs after ``check``."""
         ...
+
+
+@functools.cache
+def coding_pool() -> ThreadPoolExecutor:
+    """One thread per core for coding streams side by side: zstd and numpy release the GIL, and each stream's bytes
+    are the same whichever thread wrote it."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return ThreadPoolExecutor(max_workers=cores, thread_name_prefix="coding")
+
+
+# A forked child (a Celery pool process) inherits the pool without its threads, and would wait on it forever.
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=coding_pool.cache_clear)
 
 
 def zstd_compress(raw: bytes, level: int) -> bytes:

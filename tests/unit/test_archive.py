@@ -163,6 +163,27 @@ def test_lossless_archive_compresses_smooth_attributes() -> None:
     assert size < 0.2 * n * 26 * 4, size  # 4 bits of entropy per value: 0.125 of float32 at best
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float16"])
+def test_a_large_float_section_tries_its_layouts_in_parallel_to_the_same_bytes(dtype, monkeypatch) -> None:  # noqa: ANN001
+    from symgs_core.codec import floats
+
+    rng = np.random.default_rng(6)
+    n = floats.PARALLEL_VALUES // 3 + 1
+    # Columns that favour different layouts: a grid (rows), a smooth walk and noise (byte planes).
+    values = np.stack([rng.integers(-8, 8, n) / 4, np.cumsum(rng.normal(0, 1e-3, n)), rng.normal(0, 1, n)], axis=1)
+    values = values.astype(np.float32)
+    codec = floats.FloatZstd(dtype)
+    parallel = codec.encode(values)
+    monkeypatch.setattr(floats, "PARALLEL_VALUES", values.size + 1)
+    serial = codec.encode(values)
+    assert parallel == serial
+    sizes = [len(floats.zstd_compress(np.ascontiguousarray(floats._arrange(values.astype(dtype), layout)).tobytes(),
+                                      codec.level)) for layout in floats.LAYOUTS]  # fmt: skip
+    assert parallel.params["layout"] == floats.LAYOUTS[sizes.index(min(sizes))]
+    back = codec.decode(parallel.payload, values.shape, parallel.params, parallel.raw_length)
+    assert np.array_equal(back, values.astype(dtype).astype(np.float32))
+
+
 def test_float16_codec_rounds_to_half_and_refuses_overflow() -> None:
     contents = random_contents(20, 1, 1, special=False)
     back = decode_archive(encode_archive(contents, codec="float16"))
