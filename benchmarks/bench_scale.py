@@ -1,9 +1,9 @@
-"""Scale: `symgs compress` of a real capture from 125k to 2M Gaussians, seconds per stage and peak memory, against
+"""Scale: `symgs compress` of a real capture from 125k to 6M Gaussians, seconds per stage and peak memory, against
 PlayCanvas splat-transform writing `.spz` of the same file in the same run.
 
 Scenes (SH degree 2): the playbot capture at full detail, 500k Gaussians (the shared SOG decoded by splat-transform);
-seeded random subsets of it (125k, 250k); copies of it turned about the vertical axis and set side by side (1M: two,
-2M: four; positions, rotations and SH turn with them). Each is written as a graphdeco `.ply` into ``--work``.
+seeded random subsets of it (125k, 250k); copies of it turned about the vertical axis and set side by side, two abreast
+(1M: two, 2M: four, 4M: eight, 6M: twelve; positions, rotations and SH turn with them). Each is written as a graphdeco `.ply` into ``--work``.
 
 Every run is its own process, one after the other: `symgs compress` (preset balanced unless ``--preset``), then
 splat-transform writing `.spz` v4 (its default) and v3 from the same `.ply`, then, unless ``--no-fidelity``,
@@ -37,7 +37,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SOG = ROOT.parent / "shared/data/playbot_cc_by_sa3d/sog_lod0_500k/meta.json"
-SIZES = {"125k": 125_000, "250k": 250_000, "500k": 500_000, "1M": 1_000_000, "2M": 2_000_000}
+SIZES = {"125k": 125_000, "250k": 250_000, "500k": 500_000, "1M": 1_000_000, "2M": 2_000_000, "4M": 4_000_000,
+         "6M": 6_000_000}
 BASE = 500_000
 GRID = 1.6  # metres between the copies' centres: the capture spans about 1.4 across
 SYMGS = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
