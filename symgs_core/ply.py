@@ -275,6 +275,8 @@ def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
          t["opacities"][:, None], t["scales"], t["quats"]],
         dim=1,
     )  # fmt: skip
+    if not bool(torch.isfinite(flat).all()):  # the reader refuses such a file: refuse to write it, as other writers do
+        raise ValueError("a PLY stores finite attributes only (NaN, an infinity, or beyond float32's range)")
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
     header += [f"property float {name}" for name in graphdeco_properties(scene.sh_degree)] + ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + flat.numpy().astype("<f4", copy=False).tobytes()

@@ -23,6 +23,7 @@ from symgs_core.export import (
     write_spz,
 )
 from symgs_core.export.formats import by_path
+from symgs_core.ply import ply_bytes
 from symgs_core.scene import GaussianScene
 
 C0 = 0.28209479177387814
@@ -147,11 +148,11 @@ def test_spz_sh_flip_matches_a_reflection_of_y_and_z() -> None:
     assert torch.allclose(stored_colour, eval_sh(coeffs[None].expand(64, -1, -1), dirs), atol=0.05)
 
 
-@pytest.mark.parametrize("writer", [write_spz, write_compressed_ply])
+@pytest.mark.parametrize("writer", [write_spz, write_compressed_ply, ply_bytes])
 @pytest.mark.parametrize("attribute", ["means", "quats", "scales", "opacities", "sh_dc", "sh_rest"])
 def test_writers_refuse_non_finite_attributes(writer, attribute: str) -> None:  # noqa: ANN001
     """As the SOG and glTF writers do: NaN used to be written as arbitrary bytes (a file that reads back, wrong or
-    non-finite), an infinite position raised OverflowError."""
+    non-finite), an infinite position raised OverflowError; the PLY writer wrote NaN that its own reader refuses."""
     for value in (float("nan"), float("inf")):
         scene = scene_for_export(n=20, degree=1)
         scene.tensors()[attribute].view(-1)[5] = value
@@ -174,6 +175,25 @@ def test_compressed_ply_round_trip_within_chunk_precision() -> None:
     assert ((ours.sh_dc - ref.sh_dc) * C0).abs().max() <= 4 * C0 / 255 * 0.5 + 1e-5
     assert (ours.sh_rest - ref.sh_rest).abs().max() <= 8 / 256 + 1e-5
     assert same_rotation(ours.quats, ref.quats).min() >= math.cos(0.003)
+
+
+def test_compressed_ply_chunks_hold_whole_clusters() -> None:
+    """27 tight clusters of 256 on a 3 x 3 x 3 grid, the middle one across every top-level cell of the Morton curve
+    (where PlayCanvas' order mixes clusters into one chunk): each chunk holds one cluster, so each position keeps
+    its cluster's precision; a smaller cluster of 100 in a corner is the last, short chunk."""
+    g = torch.Generator().manual_seed(3)
+    grid = torch.stack(torch.meshgrid(*[torch.arange(3.0)] * 3, indexing="ij"), -1).reshape(27, 3)
+    label = torch.arange(27).repeat_interleave(256)[torch.randperm(27 * 256, generator=g)]
+    scene = scene_for_export(n=27 * 256 + 100, degree=0)
+    scene.means[: 27 * 256] = grid[label] + torch.randn(27 * 256, 3, generator=g) * 0.01
+    scene.means[27 * 256 :] = 4 + torch.randn(100, 3, generator=g) * 0.01
+    order = compressed_ply_order(scene)
+    assert torch.equal(order.sort().values, torch.arange(len(scene)))
+    assert (order[: 27 * 256] < 27 * 256).all()
+    chunks = label[order[: 27 * 256]].reshape(27, 256)
+    assert (chunks == chunks[:, :1]).all() and len(chunks[:, 0].unique()) == 27
+    ours, ref = read_compressed_ply(write_compressed_ply(scene)), scene.select(order)
+    assert (ours.means - ref.means)[: 27 * 256].abs().max() <= 0.1 / 1023
 
 
 def test_compressed_ply_has_the_playcanvas_header() -> None:
