@@ -2,8 +2,9 @@
 PlayCanvas splat-transform writing `.spz` of the same file in the same run.
 
 Scenes (SH degree 2): the playbot capture at full detail, 500k Gaussians (the shared SOG decoded by splat-transform);
-seeded random subsets of it (125k, 250k); copies of it turned about the vertical axis and set side by side, two abreast
-(1M: two, 2M: four, 4M: eight, 6M: twelve; positions, rotations and SH turn with them). Each is written as a graphdeco `.ply` into ``--work``.
+seeded random subsets of it (125k, 250k); copies of it turned about the vertical axis and set side by side, two
+abreast (1M: two, 2M: four, 4M: eight, 6M: twelve; positions, rotations and SH turn with them). Each is written as a
+graphdeco `.ply` into ``--work``.
 
 Every run is its own process, one after the other: `symgs compress` (preset balanced unless ``--preset``), then
 splat-transform writing `.spz` v4 (its default) and v3 from the same `.ply`, then, unless ``--no-fidelity``,
@@ -209,10 +210,9 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
         subprocess.run([exe, "-w", "-q", str(out / "peer_v4.spz"), str(read_back)], capture_output=True, check=False)
         for key, candidate in (("psnr_symgs", archive), ("psnr_spz_v4", read_back)):
             row[key] = evaluated(ply, candidate, env)
-        if not args.no_equal and None not in (row["psnr_symgs"], row["psnr_spz_v4"]) and (
-            row["psnr_symgs"] < row["psnr_spz_v4"]
-        ):
-            row["equal"] = equal_fidelity(label, ply, row["psnr_spz_v4"], args, env)
+        if None not in (row["psnr_symgs"], row["psnr_spz_v4"]) and row["psnr_symgs"] < row["psnr_spz_v4"]:
+            no_run = {"skipped": True}
+            row["equal"] = no_run if args.no_equal else equal_fidelity(label, ply, row["psnr_spz_v4"], args, env)
     return row
 
 
@@ -253,6 +253,8 @@ def _equal(row: dict) -> str:
     equal = row.get("equal")
     if equal is None:
         return "-"
+    if equal.get("skipped"):
+        return "not run (`--no-equal`)"
     if "bytes" not in equal:
         return f"failed (exit {equal['run']['rc']})"
     psnr = "-" if equal["psnr"] is None else f"{equal['psnr']:.2f}"
