@@ -2,6 +2,7 @@
 
     python benchmarks/bench_pipeline.py --scenes ../shared/data/fox_cc0_mujoco_warp/fox.ply
     python benchmarks/bench_pipeline.py --synthetic global local --capture independent --n 20000
+    python benchmarks/bench_pipeline.py --synthetic global --capture twins --noise 0 0.002 0.008 --clutter 0.3
     python benchmarks/bench_pipeline.py --synthetic global asymmetric --photos 64 --work bench-out/photos
     python benchmarks/bench_pipeline.py --captures ../shared/data/snowmiku_plush_capture_mit --work bench-out/captures
 
@@ -88,6 +89,9 @@ def main() -> None:
                         help="each --scenes entry's posed photographs (NeRF-Synthetic or COLMAP folder), in order")
     parser.add_argument("--synthetic", nargs="*", default=[], help="global | nested | local | asymmetric")
     parser.add_argument("--capture", default="independent", choices=["twins", "independent"])
+    parser.add_argument("--noise", nargs="*", type=float, default=[0.0],
+                        help="positional noise of the generated objects (fraction of their size), one row each")
+    parser.add_argument("--clutter", type=float, default=0.0, help="asymmetric Gaussians per object Gaussian")
     parser.add_argument("--n", type=int, default=20000)
     parser.add_argument("--sh-degree", type=int, default=1)
     parser.add_argument("--preset", default=None, choices=PRESET_NAMES, help="default: the default preset")
@@ -109,7 +113,12 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     config = CompressConfig.for_preset(args.preset, iterations=args.iterations, max_levels=args.max_levels,
                                        device="cpu", pictures=False)  # fmt: skip
-    label = lambda k: f"synthetic {k} ({args.capture}, n={args.n}, SH {args.sh_degree})"  # noqa: E731
+    def label(kind: str, noise: float = 0.0) -> str:
+        extra = (f", noise {noise:g}" if noise else "") + (f", clutter {args.clutter:g}" if args.clutter else "")
+        return f"synthetic {kind} ({args.capture}, n={args.n}, SH {args.sh_degree}{extra})"
+
+    if args.photos and (args.noise != [0.0] or args.clutter):
+        parser.error("--noise and --clutter shape the scenes scored against their own renders, not --photos")
     if args.photos:
         from symgs_core.bench.photos import photographed
 
@@ -117,8 +126,9 @@ def main() -> None:
                                         resolution=args.photo_resolution, sh_degree=args.sh_degree,
                                         capture=args.capture), args.work / k) for k in args.synthetic]  # fmt: skip
     else:
-        jobs = [(label(k), synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture).scene,
-                 None) for k in args.synthetic]  # fmt: skip
+        jobs = [(label(k, noise), synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture,
+                                                  noise=noise, clutter=args.clutter).scene, None)
+                for k in args.synthetic for noise in args.noise]  # fmt: skip
     if args.images and len(args.images) != len(args.scenes):
         parser.error(f"--images names {len(args.images)} folders for {len(args.scenes)} scenes")
     jobs += [(p.name, p, images) for p, images in zip(args.scenes, args.images or [None] * len(args.scenes))]
