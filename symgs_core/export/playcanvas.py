@@ -44,8 +44,8 @@ def compressed_ply_order(scene: GaussianScene) -> torch.Tensor:
     Each split cuts one axis's sorted centres at a multiple of ``CHUNK`` in the middle half (so the depth stays
     logarithmic) where the two sides' Gaussians times their boxes' summed extents is least: a position's error is its
     chunk's extent over 2^11 per axis. PlayCanvas' writers store Morton order instead, whose chunks straddle jumps
-    of the curve: on the real scans of BENCHMARKS.md this order is up to 3 dB closer to the source at the same
-    bytes. A far outlier still widens the box of the chunk it shares with 255 others (the format's chunking)."""
+    of the curve: at the same bytes this order's exports are up to 1.4 dB closer to the scene (BENCHMARKS.md,
+    "Exports"). A far outlier still widens the box of the chunk it shares with 255 others (the format's chunking)."""
     means = scene.means.detach().cpu().float().numpy()  # only to compare boxes
     n = len(means)
     left_side = np.zeros(n, dtype=bool)
