@@ -275,8 +275,13 @@ def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
          t["opacities"][:, None], t["scales"], t["quats"]],
         dim=1,
     )  # fmt: skip
-    if not bool(torch.isfinite(flat).all()):  # the reader refuses such a file: refuse to write it, as other writers do
-        raise ValueError("a PLY stores finite attributes only (NaN, an infinity, or beyond float32's range)")
+    # Refuse what the reader refuses (as the other writers do): NaN, or an infinity other than an opacity's, which the
+    # reader clamps (real files hold +inf opacity logits); float64 beyond float32's range became an infinity above.
+    bad = ~torch.isfinite(flat)
+    opacity = 9 + 3 * k  # after position, normal, DC and the rest of the SH
+    bad[:, opacity] = torch.isnan(flat[:, opacity])
+    if bool(bad.any()):
+        raise ValueError("a PLY stores finite attributes only (an opacity may be infinite), no NaN")
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
     header += [f"property float {name}" for name in graphdeco_properties(scene.sh_degree)] + ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + flat.numpy().astype("<f4", copy=False).tobytes()
