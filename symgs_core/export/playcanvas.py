@@ -1,13 +1,14 @@
 """PlayCanvas compressed PLY (`.compressed.ply`): writer and reader of the layout PlayCanvas tools write and read.
 
 Gaussians in chunks of 256 (``compressed_ply_order``). Element ``chunk`` (float32 each): min/max of x, y, z, of
-the three log-scales (clamped to +-20) and of the three colours r, g, b = dc * C0 + 0.5. Element ``vertex`` (uint32
-each):
-``packed_position`` and ``packed_scale`` as 11-10-11 bit unorms in the chunk's box (x in the top bits),
-``packed_rotation`` as the largest component's index (top 2 bits) and the other three components of the unit
-quaternion (w, x, y, z order, sign flipped so the largest is positive) as 10-bit unorms of q * sqrt2/2 + 0.5,
-``packed_color`` as 8-bit unorms of r, g, b in the chunk's range and of the opacity, top byte first. Optional
-element ``sh`` (uchar ``f_rest_i``, channel-major as in graphdeco PLY): trunc((v / 8 + 0.5) * 256), clamped.
+the three log-scales (clamped to +-20) and of the three colours r, g, b = dc * C0 + 0.5.
+
+Element ``vertex`` (uint32 each): ``packed_position`` and ``packed_scale`` as 11-10-11 bit unorms in the chunk's
+box (x in the top bits), ``packed_rotation`` as the largest component's index (top 2 bits) and the other three
+components of the unit quaternion (w, x, y, z order, sign flipped so the largest is positive) as 10-bit unorms of
+q * sqrt2/2 + 0.5, ``packed_color`` as 8-bit unorms of r, g, b in the chunk's range and of the opacity, top byte
+first. Optional element ``sh`` (uchar ``f_rest_i``, channel-major as in graphdeco PLY): trunc((v / 8 + 0.5) * 256),
+clamped.
 No entropy coding; axes as the graphdeco PLY (RDF).
 """
 
