@@ -211,8 +211,8 @@ def measure(label: str, ply: Path, args: argparse.Namespace, exe: str) -> dict:
         for key, candidate in (("psnr_symgs", archive), ("psnr_spz_v4", read_back)):
             row[key] = evaluated(ply, candidate, env)
         if None not in (row["psnr_symgs"], row["psnr_spz_v4"]) and row["psnr_symgs"] < row["psnr_spz_v4"]:
-            no_run = {"skipped": True}
-            row["equal"] = no_run if args.no_equal else equal_fidelity(label, ply, row["psnr_spz_v4"], args, env)
+            skipped = {"skipped": True}
+            row["equal"] = skipped if args.no_equal else equal_fidelity(label, ply, row["psnr_spz_v4"], args, env)
     return row
 
 

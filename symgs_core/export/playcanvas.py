@@ -61,8 +61,8 @@ def compressed_ply_order(scene: GaussianScene) -> torch.Tensor:
             leaves.append(node[0][0])
             continue
         chunks = -(-count // CHUNK)
-        cuts = np.arange(max(1, chunks // 4), max(2, 3 * chunks // 4 + 1))  # in chunks: the left side's count
-        cuts = cuts[cuts * CHUNK < count]
+        # The left side's count in chunks, within the middle half: 1 .. chunks - 1, so both sides hold some.
+        cuts = np.arange(max(1, chunks // 4), max(2, 3 * chunks // 4 + 1))
         starts = np.arange(0, count, CHUNK)
         choices = []
         for axis, (_, p) in enumerate(node):
