@@ -89,22 +89,28 @@ def prune(
     state: LevelState, rd: RateDistortion, fit: Sequence[View], background: Tensor, *, allowed: float,
     psnr_before: float, should_stop=None,  # noqa: ANN001
 ) -> tuple[Tensor, float]:
-    """How many of the Gaussians the renders miss least to leave out: for shares 1/64 .. 1/4 of the stored set,
+    """How many of the Gaussians the renders miss least to leave out: for shares 1/4 .. 1/64 of the stored set,
     the error of their absence is rendered (their errors add up coherently, so no model predicts it), the codec
     priced on what is left of the budget, and the share with the fewest predicted bits kept. Returns the keep mask
-    [N] and the measured error."""
+    [N] and the measured error.
+
+    The largest share first: a share is rendered only when the codec, given the whole budget as if its absence cost
+    nothing, would still price it below the best so far (fewer bits never need more error). A share whose absence
+    takes half the budget or more is not kept: the quantiser needs the rest."""
     n = len(state.stored)
     order = rd.prune_order()
     keep_all = torch.ones(n, dtype=torch.bool)
     best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
-    for share in PRUNE_SHARES:
+    for share in reversed(PRUNE_SHARES):
         if should_stop is not None and should_stop():
             break
         keep = keep_all.clone()
         keep[order[: int(share * n)]] = False
+        if rd.choose(_AIM * allowed, keep=keep).bits >= best[0]:
+            continue  # even free, this share would not pay
         removed = _excess(_without(state, keep), fit, background, psnr_before)
         if removed >= 0.5 * allowed:
-            break  # leaving out more only takes budget the quantiser needs
+            continue
         bits = rd.choose(_AIM * allowed - removed, keep=keep).bits
         if bits < best[0]:
             best = (bits, keep, removed)

@@ -83,6 +83,31 @@ def test_pruning_removes_what_no_camera_sees_first(setting) -> None:  # noqa: AN
     assert set(rd.prune_order()[:50].tolist()) == set(range(50))
 
 
+@pytest.mark.parametrize("loss_db", [0.05, 0.3, 1.0, 3.0])
+def test_pruning_renders_only_shares_that_can_pay_and_keeps_the_best(setting, monkeypatch, loss_db) -> None:  # noqa: ANN001
+    """The share kept is the one an exhaustive search (every share rendered) keeps, and a share is rendered only
+    when, as if its absence cost nothing, the codec would price it below the best so far."""
+    state, views, weights = setting
+    rd = RateDistortion(state.stored, weights, QuantSteps())
+    allowed = psnr_to_mse(floor_for_budget(loss_db, 30.0))
+    n, order = len(state.stored), rd.prune_order()
+    best = (rd.choose(encode._AIM * allowed).bits, torch.ones(n, dtype=torch.bool))
+    for share in encode.PRUNE_SHARES:  # the oracle
+        keep = torch.ones(n, dtype=torch.bool)
+        keep[order[: int(share * n)]] = False
+        removed = encode._excess(encode._without(state, keep), views.fit, views.background, math.inf)
+        bits = rd.choose(encode._AIM * allowed - removed, keep=keep).bits
+        if removed < 0.5 * allowed and bits < best[0]:
+            best = (bits, keep)
+    excess, rendered = encode._excess, []
+    monkeypatch.setattr(encode, "_excess", lambda s, *a: rendered.append(len(s.stored)) or excess(s, *a))
+    keep, _ = encode.prune(state, rd, views.fit, views.background, allowed=allowed, psnr_before=math.inf)
+    assert torch.equal(keep, best[1])
+    assert 1 <= len(rendered) <= len(encode.PRUNE_SHARES) and rendered[0] == n - int(encode.PRUNE_SHARES[-1] * n)
+    if not best[1].all() and int((~best[1]).sum()) == int(encode.PRUNE_SHARES[-1] * n):
+        assert len(rendered) < len(encode.PRUNE_SHARES)  # the largest share paid: a smaller one rarely can
+
+
 def test_a_fitted_archive_keeps_its_floor_when_rendered(setting) -> None:  # noqa: ANN001
     state, views, _ = setting
     fitted = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=QuantSteps(),
