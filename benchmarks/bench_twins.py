@@ -10,7 +10,8 @@ canonical frames, as the quantised archive holds them):
     residual  the differences between their symbols and their partners' reflected symbols, coded the same way; a
               residual is exact at the codec's steps, so it costs no fidelity beyond the plain codec's own rounding
 
-A ratio residual / plain below 1 is what a residual would save; above 1 it would cost more than storing the Gaussians
+A ratio residual / plain below 1 is what a residual would save at most: the residual price leaves out which kept
+Gaussian is each one's partner, which a decoder would need too. Above 1 it would cost more than storing the Gaussians
 outright, and the halves carry no information about each other that the codec does not already use. "near twins"
 counts the paired Gaussians whose every symbol lies within ``NEAR`` steps of their partner's: those a mirror could
 replace, without a fine-tune, at about the codec's own error.
