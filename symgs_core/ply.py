@@ -277,14 +277,15 @@ def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
     )  # fmt: skip
     # Refuse what the reader refuses (as the other writers do): NaN, or an infinity other than an opacity's, which the
     # reader clamps (real files hold +inf opacity logits); float64 beyond float32's range became an infinity above.
-    opacity = 9 + 3 * k  # after position, normal, DC and the rest of the SH
+    properties = graphdeco_properties(scene.sh_degree)
+    opacity = properties.index("opacity")
     for block in flat.split(1 << 20):  # a mask of a million rows at a time, not one the size of the file
         bad = ~torch.isfinite(block)
         bad[:, opacity] = torch.isnan(block[:, opacity])
         if bool(bad.any()):
             raise ValueError("a PLY stores finite attributes only (an opacity may be infinite), no NaN")
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
-    header += [f"property float {name}" for name in graphdeco_properties(scene.sh_degree)] + ["end_header"]
+    header += [f"property float {name}" for name in properties] + ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + flat.numpy().astype("<f4", copy=False).tobytes()
 
 
