@@ -279,14 +279,16 @@ def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
     # reader clamps (real files hold +inf opacity logits); float64 beyond float32's range became an infinity above.
     properties = graphdeco_properties(scene.sh_degree)
     opacity = properties.index("opacity")
-    for block in flat.split(1 << 20):  # a mask of a million rows at a time, not one the size of the file
-        bad = ~torch.isfinite(block)
-        bad[:, opacity] = torch.isnan(block[:, opacity])
-        if bool(bad.any()):
+    rows = flat.numpy().astype("<f4", copy=False)
+    for start in range(0, n, 1 << 20):  # a mask of a million rows at a time, not one the size of the file
+        block = rows[start : start + (1 << 20)]
+        finite = np.isfinite(block)  # numpy's: ten times torch's on a CPU, which made the check half the write
+        finite[:, opacity] |= np.isinf(block[:, opacity])
+        if not finite.all():
             raise ValueError("a PLY stores finite attributes only (an opacity may be infinite), no NaN")
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
     header += [f"property float {name}" for name in properties] + ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii") + flat.numpy().astype("<f4", copy=False).tobytes()
+    return b"".join((("\n".join(header) + "\n").encode("ascii"), rows.data))  # one copy of the rows, not two
 
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike[str], *, comments: tuple[str, ...] = ()) -> None:
