@@ -127,6 +127,7 @@ class Matcher:
         # capped so that sparse Gaussians (floaters, clutter) do not get a tolerance wide enough to match by chance.
         local = 0.5 * voxel / np.sqrt(counts[self.voxel])
         self.spacing = np.clip(local, 0.5 * self.typical, 2.0 * self.typical)
+        self.widest = float(self.spacing.max())
         # Whole voxels, in random order up to about _SAMPLE Gaussians, so that their region means are exact.
         shuffled = rng.permutation(counts.size)
         chosen = np.zeros(counts.size, dtype=bool)
@@ -224,7 +225,7 @@ class Matcher:
         _reflect_kernel(self.p, idx, d, n, reflected)
         # Two tolerances out a match scores 1/16: nothing farther is worth finding.
         tolerance = widen * self.tolerance
-        err, hit = self._other_side(reflected, idx, side, 2.0 * tolerance * float(self.spacing.max()), k)
+        err, hit = self._other_side(reflected, idx, side, 2.0 * tolerance * self.widest, k)
         geo, agree = np.empty(err.shape), np.empty(err.shape)
         close, alike = _candidate_kernel(
             err, hit, idx, tolerance * self.spacing[idx], self.traits, self.round, n, geo, agree
