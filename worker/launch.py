@@ -11,7 +11,7 @@ from celery import signals
 from .celery_app import app
 from .maintenance import Maintenance
 from .settings import get_settings
-from .storage import storage_from_settings
+from .storage_backend import storage_from_settings
 from .store import JobStore
 
 

@@ -30,8 +30,6 @@ from pathlib import Path
 
 from symgs_core.export.formats import EXPORTS
 
-from .settings import Settings
-
 _EXPORTED = "|".join(re.escape(fmt.artifact) for fmt in EXPORTS)
 _ARTIFACT = re.compile(rf"^(result\.symgs|{_EXPORTED}|report\.json|charts/[A-Za-z0-9_-]{{1,64}}\.png)$")
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -216,12 +214,3 @@ class DirectoryStorage(Storage):
 
     def sweep_staging(self, older_than_s: float) -> int:
         return sweep_folders(self.root / "staging", older_than_s)
-
-
-def storage_from_settings(settings: Settings) -> Storage:
-    if settings.storage.startswith("s3://"):
-        from .storage_s3 import S3Storage
-
-        return S3Storage.from_url(settings.storage, cache=settings.cache_path)
-    return DirectoryStorage(settings.storage)
-

@@ -12,7 +12,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 from .celery_app import COMPRESS_TASK, app
 from .runner import failure_of, input_errors, mark_failed, run_job
 from .settings import get_settings
-from .storage import storage_from_settings
+from .storage_backend import storage_from_settings
 from .store import JobStore
 
 log = logging.getLogger(__name__)

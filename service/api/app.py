@@ -17,7 +17,7 @@ from fastapi.openapi.utils import get_openapi
 from api_schemas import JobEvent
 from worker.celery_app import make_celery
 from worker.settings import Settings
-from worker.storage import storage_from_settings
+from worker.storage_backend import storage_from_settings
 from worker.store import JobStore
 
 from ..dashboard.routes import router as dashboard_router
