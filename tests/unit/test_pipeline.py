@@ -355,7 +355,7 @@ def test_photographs_on_a_white_backdrop_are_matched_on_it(tmp_path):
 def test_photographs_laid_on_another_background_are_those_read_on_it(tmp_path, monkeypatch, alpha):
     """A job that finds a backdrop lays what it read on it: every target is the one a read on that background gives,
     tensor for tensor (downscaled, so the alpha is resized too), and no image is read again."""
-    from symgs_core import datasets
+    from symgs_core.datasets import images
 
     backdrop = (0.0, 0.0, 0.0) if alpha else (1.0, 1.0, 1.0)
     upload = photographed("global", tmp_path, n=300, photos=6, tests=2, resolution=48, backdrop=backdrop)
@@ -365,7 +365,7 @@ def test_photographs_laid_on_another_background_are_those_read_on_it(tmp_path, m
     colour = torch.tensor([0.2, 0.5, 0.9])
     black = read(background=torch.zeros(3))
     direct = read(background=colour)
-    monkeypatch.setattr(datasets, "read_premultiplied", lambda path: pytest.fail(f"{path.name} read again"))
+    monkeypatch.setattr(images, "read_premultiplied", lambda path: pytest.fail(f"{path.name} read again"))
     laid = black.on(colour)
     assert torch.equal(laid.background, colour) and laid.sets == direct.sets
     for ours, theirs, before in zip((laid.train, laid.fit, laid.eval), (direct.train, direct.fit, direct.eval),

@@ -1,0 +1,69 @@
+"""Image files of a posed set: read (alpha premultiplied), resized, laid on a background."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .posed import DatasetError, Photograph, PosedFrame, View, composite
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+
+
+def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
+    """Image [H, W, 3] float32 in [0, 1], premultiplied by its alpha channel [H, W, 1] (None: it has none)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
+            array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+    rgb = torch.from_numpy(array[..., :3].copy())
+    if not has_alpha:
+        return rgb, None
+    alpha = torch.from_numpy(array[..., 3:].copy())
+    return rgb * alpha, alpha
+
+
+def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """Image [H, W, 3] float32 in [0, 1]; an alpha channel is composited on ``background``."""
+    return composite(*read_premultiplied(path), background)
+
+
+def resize_image(image: Tensor, width: int, height: int) -> Tensor:
+    """Anti-aliased resize of [H, W, 3]."""
+    if image.shape[:2] == (height, width):
+        return image
+    out = torch.nn.functional.interpolate(
+        image.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False
+    )
+    return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+
+
+def load_frames(frames: list[PosedFrame]) -> list[Photograph]:
+    photographs = []
+    for frame in frames:
+        colour, alpha = read_premultiplied(frame.path)
+        w, h = frame.camera.width, frame.camera.height
+        # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
+        # what resizing the composite would.
+        alpha = None if alpha is None else resize_image(alpha, w, h)
+        photographs.append(Photograph(frame.camera, resize_image(colour, w, h), alpha, frame.name))
+    return photographs
+
+
+def load_views(frames: list[PosedFrame], background: tuple[float, float, float]) -> list[View]:
+    return [View(p.camera, p.on(background), p.name) for p in load_frames(frames)]

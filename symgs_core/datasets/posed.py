@@ -1,0 +1,133 @@
+"""What a posed image set yields: frames (a camera and its image file), photographs and views; the error every
+loader raises; the LLFF hold-out that splits a set without a test split of its own; the checks both layouts share
+(rigid poses, finite intrinsics, paths that stay in the dataset folder).
+
+Every camera comes out in our convention (``cameras.COORDINATE_CONVENTION``: OpenCV axes, world-to-camera).
+Images are float32 [H, W, 3] in [0, 1]; RGBA images are composited on a chosen background, after resizing: a
+``Photograph`` keeps its alpha, so what was read once can be laid on another background without reading it again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+
+Split = Literal["train", "val", "test", "all"]
+Layout = Literal["nerf_synthetic", "colmap"]
+
+LLFF_HOLD = 8  # a set without a test split holds out every 8th image by name (the LLFF convention)
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
+
+    Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, malformed,
+    unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
+    (``views.check_photographs``) and too_few_images (``views.dataset_views``).
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(code, message)  # both, so a pickled copy (Celery's failure hook) keeps the code
+        self.code, self.message = code, message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass
+class View:
+    """One posed image: ``image`` [H, W, 3] float32 in [0, 1], the size of ``camera``."""
+
+    camera: Camera
+    image: Tensor
+    name: str
+
+
+@dataclass
+class Photograph:
+    """One posed image before it is laid on a background, the size of ``camera``: ``colour`` [H, W, 3] float32
+    premultiplied by ``alpha`` [H, W, 1] (None: an opaque image, which no background shows through)."""
+
+    camera: Camera
+    colour: Tensor
+    alpha: Tensor | None
+    name: str
+
+    def on(self, background: Tensor | tuple[float, float, float]) -> Tensor:
+        """The image laid on ``background`` [3]."""
+        return composite(self.colour, self.alpha, background)
+
+
+@dataclass(frozen=True)
+class PosedFrame:
+    """A camera and the image file it belongs to, before the image is decoded."""
+
+    camera: Camera
+    path: Path
+    name: str
+
+
+def composite(colour: Tensor, alpha: Tensor | None, background: Tensor | tuple[float, float, float]) -> Tensor:
+    """``colour`` [H, W, 3], premultiplied by ``alpha`` [H, W, 1] (None: opaque), laid on ``background`` [3]."""
+    if alpha is None:
+        return colour
+    under = torch.as_tensor(background, dtype=colour.dtype, device=colour.device) * (1.0 - alpha)
+    return (colour + under).clamp(0.0, 1.0)  # rounding may carry the sum a step past 1
+
+
+def in_split(index: int, split: Split) -> bool:
+    """Whether the ``index``-th view by name is in ``split`` ("train", "test" or "all") by the LLFF hold-out: every
+    ``LLFF_HOLD``-th is "test"."""
+    return split == "all" or (index % LLFF_HOLD == 0) == (split == "test")
+
+
+def held_out(frames: list[PosedFrame], split: Split) -> list[PosedFrame]:
+    """``split`` of ``frames`` by the LLFF hold-out (``in_split``; no "val")."""
+    if split == "all":
+        return frames
+    if split == "val":
+        return []
+    return [f for i, f in enumerate(sorted(frames, key=lambda f: f.name)) if in_split(i, split)]
+
+
+def scaled(camera: Camera, scale: float) -> Camera:
+    if scale == 1.0:
+        return camera
+    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+
+
+def subsample(frames: list[PosedFrame], max_views: int | None) -> list[PosedFrame]:
+    """At most ``max_views`` frames, evenly spaced over the list, in order."""
+    if max_views is None or max_views >= len(frames):
+        return frames
+    if max_views <= 0:
+        raise ValueError(f"max_views must be positive, got {max_views}")
+    return [frames[i * len(frames) // max_views] for i in range(max_views)]
+
+
+def check_background(background: tuple[float, float, float]) -> tuple[float, float, float]:
+    values = tuple(float(v) for v in background)
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise ValueError(f"background must be three values in [0, 1], got {background}")
+    return values  # type: ignore[return-value]
+
+
+def finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def inside(root: Path, path: Path) -> bool:
+    """Whether ``path``, its symbolic links followed, lies in the folder ``root``."""
+    return path.resolve().is_relative_to(root.resolve())
+
+
+def rotation_ok(r: np.ndarray) -> bool:
+    return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
