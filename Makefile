@@ -20,10 +20,11 @@ demo: install
 test: install
 	$(PY) -m pytest
 
-# mypy's settings (which packages, the pydantic plugin) are in pyproject.toml's [tool.mypy].
+# mypy's settings (the pydantic plugin, per-package overrides) are in pyproject.toml's [tool.mypy]; the packages it
+# checks are the ones named here.
 lint: install
 	$(VENV)/bin/ruff check .
-	$(PY) -m mypy api_schemas service worker
+	$(PY) -m mypy api_schemas service worker symgs_core
 
 # Every table of BENCHMARKS.md, measured at the checked-out commit (hours on 2 cores); QUICK=1: a short subset written
 # to bench-out/BENCHMARKS.quick.md; ONLY=codec,decode: some entries (benchmarks/run_all.py --list names them).

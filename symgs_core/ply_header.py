@@ -128,6 +128,7 @@ def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
         elif words[0] == "property":
             if not elements:
                 raise bad
+            prop: tuple[str, str, str | None]
             if len(words) == 3 and words[1] in TYPES:
                 prop = (words[2], words[1], None)
             elif len(words) == 5 and words[1] == "list" and words[2] in TYPES and words[3] in TYPES:

@@ -462,7 +462,7 @@ def synthetic_scene(
         shares = torch.tensor([0.54**i for i in range(objects)])
         counts = (shares / shares.sum() * n).long().tolist()
         axes = quat_to_matrix(_random_quat(gen))
-        scenes = []
+        scenes: list[GaussianScene] = []
         for i, count in enumerate(counts):
             design = _Design.random(gen, count, parts if i == 0 else max(parts // 2, 3), k)
             obj = design.whole(samples, capture)

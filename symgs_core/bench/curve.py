@@ -15,15 +15,15 @@ from collections.abc import Iterable
 
 from ..metrics import LOSSLESS_DB
 
-Point = tuple[float, float]  # (bytes, PSNR dB); PSNR +inf: identical renders
+Point = tuple[float, float | None]  # (bytes, PSNR dB); PSNR +inf: identical renders, None: no figure
 
 
-def front(points: Iterable[Point]) -> list[Point]:
+def front(points: Iterable[Point]) -> list[tuple[float, float]]:
     """The lossy points no other point beats (fewer or equal bytes at higher or equal PSNR, one strictly), by
     increasing PSNR; bytes then increase too. A PSNR of None (no figure) is left out."""
     finite = {(b, p) for b, p in points if p is not None and p < LOSSLESS_DB and b > 0}
     ordered = sorted(finite, key=lambda x: (x[1], -x[0]))
-    kept: list[Point] = []
+    kept: list[tuple[float, float]] = []
     for b, p in reversed(ordered):  # from the highest PSNR down: keep a point only if it is smaller than all above
         if not kept or b < kept[-1][0]:
             kept.append((b, p))

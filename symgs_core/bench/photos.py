@@ -10,11 +10,12 @@ it replaces: the two are samples of one surface.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from ..cameras import scene_bounds
-from ..datasets import write_nerf_synthetic
+from ..datasets import Split, write_nerf_synthetic
 from ..render import render
 from ..scene import GaussianScene
 from ..synthetic import Capture, SceneKind, synthetic_scene
@@ -30,10 +31,11 @@ def photographed(
     """The upload of a generated ``kind`` scene of about ``n`` Gaussians; ``photos`` training and ``tests`` test
     photographs (``resolution`` px square, on ``backdrop``, without alpha) of its truth written to ``folder`` as
     NeRF-Synthetic."""
-    common = {"seed": seed, "sh_degree": sh_degree}
+    common: dict[str, Any] = {"seed": seed, "sh_degree": sh_degree}
     upload = synthetic_scene(kind, n=n, capture=capture, sample_seed=2 * seed + 1, **common).scene
     truth = synthetic_scene(kind, n=TRUTH_DENSITY * n, capture="twins", sample_seed=2 * seed + 2, **common).scene
     centre, radius = scene_bounds(truth.means, truth.scales)
+    split: Split
     for split, count, rig in (("train", photos, 11), ("test", tests, 12)):
         cameras = viewer_cameras(centre, radius, count, resolution, seed=1000 * seed + rig, name=split)
         with torch.no_grad():

@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -30,7 +30,7 @@ from ..scene import GaussianScene
 from ..views import ViewSet, evaluate, self_supervised_views
 from . import curve
 from .peers import PEERS, Peer, PeerOutput, run_peers
-from .rows import TOLERANCE_DB, BenchRow
+from .rows import TOLERANCE_DB, BenchRow, Role
 
 OURS = "symgs"  # mirrors on (the product's default): our curve whenever mirrors run
 OURS_PLAIN = "symgs no mirrors"
@@ -94,7 +94,7 @@ def _figures(row: BenchRow, main: Fidelity, other: Fidelity, ply_bytes: int) -> 
     return row
 
 
-def _ours(scene: _Scene, config: CompressConfig, role: str, say: Say) -> BenchRow:
+def _ours(scene: _Scene, config: CompressConfig, role: Role, say: Say) -> BenchRow:
     from ..pipeline import compress, decompress
     from ..ply import ply_bytes
 
@@ -149,7 +149,7 @@ def curve_points(rows: list[BenchRow], scene: str, method: str = OURS, field: st
         return math.inf if stored_float32 and value is not None else value
 
     return [(float(r.bytes), psnr(r)) for r in rows
-            if r.scene == scene and r.method == method and r.ok and r.bytes]  # type: ignore[misc]  # fmt: skip
+            if r.scene == scene and r.method == method and r.ok and r.bytes]  # fmt: skip
 
 
 def _nearest_preset(floor: float, nominal: float) -> str:
@@ -183,7 +183,8 @@ def next_floor(
     landed = [(getattr(r, field), r.floor_db) for r in ours]
     landed = [(p, f) for p, f in landed if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
     # The offset of the run that landed nearest the target: runs far from it, at other steps, land differently.
-    offset = min(landed, key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
+    # After the filter above no figure in ``landed`` is None.
+    offset = min(cast(list[tuple[float, float]], landed), key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
     offset_db = offset[0] - offset[1]
     front = curve.front(curve_points(rows, scene, method, field))
     up = not front or target > front[-1][1]

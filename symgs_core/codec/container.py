@@ -99,7 +99,7 @@ def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
     end = PREFIX_SIZE + header_len
     if len(view) < end:
         raise ArchiveError("truncated", f"{len(view)} bytes: the {header_len}-byte header needs {end}")
-    text = view[PREFIX_SIZE:end]
+    text: memoryview | bytes = view[PREFIX_SIZE:end]
     if crc32(text) != header_crc:
         raise ArchiveError("bad_checksum", f"header CRC32 {crc32(text):08x}, prefix says {header_crc:08x}")
     if version == 2:

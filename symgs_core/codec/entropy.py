@@ -23,6 +23,8 @@ length against the table's known shape before it allocates.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 
 from .errors import ArchiveError
@@ -104,6 +106,7 @@ def encode_table(table: np.ndarray, level: int = 9) -> bytes:
     table = table.astype(np.int64)
     if table.size and (int(np.abs(table).max()) >= 1 << 30):
         raise ValueError(f"symbols must stay within +-2^30, got magnitude {int(np.abs(table).max())}")
+    rows: Future[bytes] | bytes
     if table.size >= PARALLEL_SYMBOLS and table.shape[1] > 1:
         rows = coding_pool().submit(_rows, table, level)
         parts = list(coding_pool().map(_column, table.T, [level] * table.shape[1]))

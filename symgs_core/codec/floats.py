@@ -40,6 +40,7 @@ def _restore(raw: bytes, n: int, c: int, dtype: np.dtype, layout: str) -> np.nda
     """Inverse of ``_arrange``: stored bytes -> a fresh, writable [N, C] array of ``dtype``."""
     width = dtype.itemsize
     stored = np.frombuffer(raw, dtype=np.uint8)
+    planes: np.ndarray  # the two layouts below give it different shapes
     if layout == "rows":
         return stored.copy().view(dtype).reshape(n, c)
     if layout == "columns":

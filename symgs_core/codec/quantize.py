@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -46,7 +46,7 @@ GRID_AGREEMENT = 1e-6  # relative difference up to which the three axes' grid st
 
 
 def _number(params: dict[str, Any], key: str, codec: str) -> float:
-    value = params.get(key)
+    value: Any = params.get(key)  # a header's JSON value: the type test below is what checks it
     if type(value) not in (int, float) or not math.isfinite(value):
         raise ArchiveError("bad_header", f"{codec}: parameter {key}={value!r:.60} must be a finite number")
     return float(value)
@@ -198,9 +198,10 @@ def _position_grid(values: np.ndarray, step: float) -> tuple[float, np.ndarray] 
     """
     columns = [np.unique(values[:, a]) for a in range(3)]
     gaps = [_grid_step(c.astype(np.float64), MAX_POSITION_GRID_LEVELS) for c in columns]
-    if None in gaps or max(gaps) - min(gaps) > GRID_AGREEMENT * min(gaps):
+    steps = cast(list[float], gaps)  # read only once None is ruled out
+    if None in gaps or max(steps) - min(steps) > GRID_AGREEMENT * min(steps):
         return None
-    gap, origin = _fit_grid(columns, sum(gaps) / 3)
+    gap, origin = _fit_grid(columns, sum(steps) / 3)
     return _multiple(gap, step), origin
 
 

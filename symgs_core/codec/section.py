@@ -124,6 +124,7 @@ def split_parts(payload: bytes, count: int, codec: str) -> list[bytes]:
 
 def split_all(payload: bytes, codec: str) -> list[bytes]:
     """Every stream of a ``join_parts`` payload, however many; ArchiveError if the last one is cut short."""
+    parts: list[bytes]
     parts, pos = [], 0
     while pos < len(payload):
         if pos + 4 > len(payload):

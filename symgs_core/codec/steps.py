@@ -11,6 +11,7 @@ the same, SH bands half. ``scaled(f)`` moves every step together; the pipeline s
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 from ..report import Steps
 from .masks import MASKS
@@ -52,7 +53,7 @@ class QuantSteps:
             scale=self.scale * factor,
             opacity=min(self.opacity * factor, 0.5),
             dc=self.dc * factor,
-            sh=tuple(s * factor for s in self.sh),
+            sh=cast(tuple[float, float, float], tuple(s * factor for s in self.sh)),
         )
 
     def codecs(self, extent: float) -> dict[str, SectionCodec]:

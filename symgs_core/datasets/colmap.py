@@ -149,7 +149,7 @@ def read_colmap_images_binary(path: Path) -> dict[int, ColmapImage]:
         name = f.cstring()
         (points,) = f.read("Q")
         f.skip(points * 24)  # (x, y, point3D_id) per 2D point; not needed
-        images[image_id] = ColmapImage(q, t, camera_id, name)  # type: ignore[arg-type]
+        images[image_id] = ColmapImage(q, t, camera_id, name)
     return images
 
 

@@ -151,7 +151,7 @@ def _nerf_number(meta: dict, key: str, path: Path, default: float | None = None,
     """``meta[key]`` (``default`` when absent), finite and, when ``positive``, above 0; a NaN or an infinite value
     (which JSON readers accept) would otherwise surface far from its cause."""
     try:
-        value = float(meta.get(key, default))
+        value = float(meta.get(key, default))  # type: ignore[arg-type]  # None (absent, no default): TypeError
     except (TypeError, ValueError) as exc:
         raise DatasetError("bad_transforms", f"{path.name}: {key} is not a number ({exc})") from None
     if not finite(value) or (positive and value <= 0.0):

@@ -117,7 +117,7 @@ def check_background(background: tuple[float, float, float]) -> tuple[float, flo
     values = tuple(float(v) for v in background)
     if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
         raise ValueError(f"background must be three values in [0, 1], got {background}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def finite(*values: float) -> bool:

@@ -133,7 +133,7 @@ class VoteIndex:
         """Votes per block [A, B, C] (float32)."""
         return torch.from_numpy(np.diff(self.starts).astype(np.float32).reshape(self.blocks))
 
-    def in_blocks(self, lo: Sequence[int], hi: Sequence[int]) -> np.ndarray:
+    def in_blocks(self, lo: Sequence[int] | np.ndarray, hi: Sequence[int] | np.ndarray) -> np.ndarray:
         """Ids [M] (int32) of the votes in blocks lo..hi (coordinates [3], inclusive, clipped to the grid)."""
         lo = np.clip(np.asarray(lo, dtype=np.int64), 0, None)
         hi = np.minimum(np.asarray(hi, dtype=np.int64), np.asarray(self.blocks) - 1)
@@ -143,6 +143,7 @@ class VoteIndex:
         """Ids [M] (int64, ascending) of the votes whose cell is within ``radius`` cells of ``coord`` [3] in every
         coordinate."""
         c = [int(v) for v in coord]
+        ids: np.ndarray | Tensor
         ids = np.sort(self.in_blocks([(v - radius) // 2 for v in c], [(v + radius) // 2 for v in c]))
         ids = torch.from_numpy(ids.astype(np.int64))
         cells = self.spec.unravel(torch.from_numpy(self.cells)[ids].long())

@@ -6,6 +6,7 @@ import math
 import time
 from collections import defaultdict
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -63,7 +64,7 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     known = list(exclude)
     parts = (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats)
     # A finite row sum has finite terms; a non-finite one may be finite terms that overflow: those rows are checked.
-    finite = torch.isfinite(sum(t.sum(dim=1) for t in parts))
+    finite = torch.isfinite(cast(Tensor, sum(t.sum(dim=1) for t in parts)))  # parts is not empty: a tensor
     suspect = torch.nonzero(~finite)[:, 0]
     if suspect.numel():
         finite[suspect] = torch.cat([torch.isfinite(t[suspect]) for t in parts], dim=1).all(dim=1)
@@ -178,7 +179,8 @@ def _detect_level(
         coverage = (sides.left.numel() + sides.right.numel()) / n_points
         if coverage >= config.min_coverage and chance is None:
             chance = matcher.chance_coverage(_CHANCE_PLANES, config.seed + level)
-        significant = coverage >= config.min_coverage and coverage >= config.min_significance * chance
+        # Whenever coverage reaches min_coverage, chance is measured just above.
+        significant = coverage >= config.min_coverage and coverage >= config.min_significance * cast(float, chance)
         clock.lap("membership")
         if significant and sides.left.numel():
             world_n, world_g = frame.plane_to_world(normal.to(frame.centre.dtype).to(frame.centre.device), offset)

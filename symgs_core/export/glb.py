@@ -164,7 +164,7 @@ def read_glb_document(data: bytes) -> tuple[dict, bytes]:
 
 
 _COMPONENTS = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
-_DTYPES = {FLOAT: np.dtype("<f4"), UNSIGNED_BYTE: np.dtype("u1")}
+_DTYPES: dict[int, np.dtype] = {FLOAT: np.dtype("<f4"), UNSIGNED_BYTE: np.dtype("u1")}
 
 
 def _accessor(document: dict, binary: bytes, index: object, count: int) -> np.ndarray:

@@ -30,6 +30,7 @@ import math
 import os
 import struct
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -180,7 +181,8 @@ def _blocks(data: bytes) -> tuple[int, int, int, int, list[bytes]]:
             raise SpzError(f"spz: version {version}, SH degree {degree}, {count} streams at {toc}: not readable")
         import zstandard
 
-        sizes = [struct.unpack_from("<QQ", data, toc + 16 * i) for i in range(count)]
+        # One name, two shapes: (compressed, uncompressed) pairs here, the legacy layout's block sizes below.
+        sizes: list[Any] = [struct.unpack_from("<QQ", data, toc + 16 * i) for i in range(count)]
         pos, raw = toc + 16 * count, []
         for compressed, uncompressed in sizes:
             frame = data[pos : pos + compressed]

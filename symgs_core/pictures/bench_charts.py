@@ -10,6 +10,7 @@ size there, labelled with how many times smaller ours is (``equal_psnr_ratio``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import cast
 
 from matplotlib.axes import Axes
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
@@ -68,20 +69,20 @@ def _scene_chart(rows: Sequence[BenchRow], scene: str, x: Callable[[BenchRow], f
         colour, marker = method_style(method)
         mine = [r for r in shown if r.method == method]
         if mine[0].ours and equal:  # our curve: its Pareto front, then every run on it or off it
-            front = curve.front((float(r.bytes), r.psnr_db) for r in mine)  # type: ignore[misc]
+            front = curve.front((float(cast(int, r.bytes)), r.psnr_db) for r in mine)  # _ok: rows with bytes
             ax.plot([b for b, _ in front], [ymap(p) for _, p in front], color=colour, linewidth=1.2, zorder=2)
         ax.plot([x(r) for r in mine], [ymap(r.psnr_db) for r in mine], linestyle="none", marker=marker, color=colour,
                 markersize=7 if mine[0].ours else 9, markeredgecolor="#222222", zorder=3, label=method)  # fmt: skip
         for r in mine:
-            if r.role == "preset":
-                ax.annotate(r.preset, (x(r), ymap(r.psnr_db)), textcoords="offset points", xytext=(5, -9), fontsize=6,
-                            color=colour)  # fmt: skip
+            if r.role == "preset":  # a preset run names its preset
+                ax.annotate(cast(str, r.preset), (x(r), ymap(r.psnr_db)), textcoords="offset points", xytext=(5, -9),
+                            fontsize=6, color=colour)  # fmt: skip
     if equal:
         labelled: list[float] = []
         for r in shown:
             if r.role == "peer" and r.equal_psnr_bytes and r.equal_psnr_ratio:
                 y = ymap(r.psnr_db)
-                ax.plot([r.equal_psnr_bytes, r.bytes], [y, y], color="#444444", linestyle=":", linewidth=0.9)
+                ax.plot([r.equal_psnr_bytes, cast(int, r.bytes)], [y, y], color="#444444", linestyle=":", linewidth=0.9)
                 ax.plot([r.equal_psnr_bytes], [y], marker="|", markersize=9, color="#444444")
                 stacked = sum(abs(y - other) < 1.5 for other in labelled)  # peers at about the same PSNR
                 labelled.append(y)
@@ -118,7 +119,7 @@ def _overall(rows: Sequence[BenchRow], x: Callable[[BenchRow], float], xlabel: s
             if not mine:
                 continue
             if len(mine) > 1:  # the front: a run that another beats in both bytes and PSNR is a marker only
-                front = curve.front((x(r), r.psnr_db) for r in mine)  # type: ignore[misc]
+                front = curve.front((x(r), r.psnr_db) for r in mine)
                 ax.plot([b for b, _ in front], [ymap(p) for _, p in front], color=colour, linewidth=0.6, alpha=0.6)
             ax.plot([x(r) for r in mine], [ymap(r.psnr_db) for r in mine], linestyle="none", color=colour,
                     marker=SCENE_MARKERS[i % len(SCENE_MARKERS)], markersize=6, markeredgecolor="#222222",

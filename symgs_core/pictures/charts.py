@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 from matplotlib.axes import Axes
 from matplotlib.ticker import EngFormatter, LogLocator, NullFormatter
@@ -145,7 +145,7 @@ def _y(point: ChartPoint, ymap: YMap) -> float:
 _STAGE_MARKERS = "DPhp<>"
 
 
-def _style(point: ChartPoint, rolled_back: set[int], stage_index: int) -> dict:
+def _style(point: ChartPoint, rolled_back: set[int | None], stage_index: int) -> dict:
     if point.kind == "input":
         return {"marker": "s", "color": "#222222"}
     if point.kind == "final":
@@ -203,7 +203,7 @@ def rate_distortion_png(
     fig = new_figure(width, height)
     ax = fig.add_subplot()
     top = _psnr_axis(ax, points, floor, peers)
-    _draw(ax, points, top, lambda p: p.bytes, hollow=True)
+    _draw(ax, points, top, lambda p: cast(float, p.bytes), hollow=True)  # points without bytes are left out above
     if peers:
         _draw_peers(ax, peers, top, lambda p: p.bytes)
         ax.set_xscale("log")

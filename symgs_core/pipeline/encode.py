@@ -152,6 +152,7 @@ def fit_codec(
     keep, pruned = prune(state, rd, fit, background, allowed=allowed, psnr_before=psnr_before,
                          should_stop=should_stop)  # fmt: skip
     best: Fitted | None = None
+    tries: list[dict]
     target, tries = _AIM * allowed - pruned, []
     measured: dict[tuple, float] = {}  # each choice's fitting PSNR: the model may give a choice again for a new target
     for check in range(MAX_CHECKS):

@@ -368,6 +368,7 @@ def run_levels(
                 archive_bytes=archive_bytes,
             ))  # fmt: skip
             if accepted_now:
+                assert archive_bytes is not None  # only a judged level is accepted
                 state, psnr, best_bytes, done = tuned, psnr_after, archive_bytes, False
                 break
         if checkpoint is not None:

@@ -49,5 +49,7 @@ def _project_compiled(scene: GaussianScene, camera: Camera, sh_degree: int) -> P
 
     arrays = [t.detach().cpu().contiguous().numpy() for t in
               (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_dc, scene.sh_rest)]  # fmt: skip
-    outs = [torch.from_numpy(a).to(scene.device) for a in project_fast(*arrays, sh_degree, camera)]
+    # mypy lets an unpacked list fill every parameter, so the two after it seem too many (the list holds six).
+    outs = [torch.from_numpy(a).to(scene.device)
+            for a in project_fast(*arrays, sh_degree, camera)]  # type: ignore[call-arg]  # fmt: skip
     return Projection(*outs)

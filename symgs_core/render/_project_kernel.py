@@ -31,7 +31,8 @@ def project_kernel(
     rot: np.ndarray,  # [3, 3] world to camera
     trans: np.ndarray,  # [3]
     center: np.ndarray,  # [3] camera centre
-    fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, c2: np.ndarray, c3: np.ndarray,
+    fx: np.float32, fy: np.float32, cx: np.float32, cy: np.float32,  # float32, as the tensors are
+    width: int, height: int, near: float, c2: np.ndarray, c3: np.ndarray,
     means2d: np.ndarray, conics: np.ndarray, depths: np.ndarray, radii: np.ndarray, colors: np.ndarray,
     opacity: np.ndarray,
 ) -> None:  # fmt: skip
