@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import cast
 
 from .errors import ArchiveError
 from .floats import FLOAT16, FLOAT32
@@ -19,9 +18,7 @@ from .section import SectionCodec, SectionKind
 
 # Every archive holds these sections, in this order; ``bits`` is the level bit matrix, the others are attributes.
 SECTION_NAMES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest", "bits")
-SECTION_KINDS: dict[str, SectionKind] = {name: cast(SectionKind, "float32") for name in SECTION_NAMES[:-1]} | {
-    "bits": "bool"
-}
+SECTION_KINDS: dict[str, SectionKind] = {**{name: "float32" for name in SECTION_NAMES[:-1]}, "bits": "bool"}
 
 _SECTION_CODECS: dict[str, SectionCodec] = {}
 _ARCHIVE_CODECS: dict[str, ArchiveCodec] = {}

@@ -47,9 +47,8 @@ def _project_compiled(scene: GaussianScene, camera: Camera, sh_degree: int) -> P
     scenes (the exactness tests') keep the reference."""
     from ._project_kernel import project_fast
 
-    arrays = [t.detach().cpu().contiguous().numpy() for t in
-              (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_dc, scene.sh_rest)]  # fmt: skip
-    # mypy lets an unpacked list fill every parameter, so the two after it seem too many (the list holds six).
+    means, quats, scales, opacities, dc, rest = (t.detach().cpu().contiguous().numpy() for t in
+        (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_dc, scene.sh_rest))  # fmt: skip
     outs = [torch.from_numpy(a).to(scene.device)
-            for a in project_fast(*arrays, sh_degree, camera)]  # type: ignore[call-arg]  # fmt: skip
+            for a in project_fast(means, quats, scales, opacities, dc, rest, sh_degree, camera)]  # fmt: skip
     return Projection(*outs)
