@@ -108,8 +108,15 @@ def main() -> None:
                         help="COLMAP (with sparse points) or NeRF-Synthetic folders")
     parser.add_argument("--train-rounds", type=int, default=ROUNDS, help="rounds of training a capture's scene")
     parser.add_argument("--train-iterations", type=int, default=ITERATIONS, help="Adam steps per round")
+    parser.add_argument("--tune-gain", type=float,
+                        help="dB a fine-tune is taken to recover at most (default: the pipeline's); a large value "
+                             "fine-tunes every membership the gate would judge without one, to see what it leaves out")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    if args.tune_gain is not None:
+        from symgs_core.pipeline import levels
+
+        levels.TUNE_GAIN = args.tune_gain  # read by the level loop at each decision
     torch.set_num_threads(args.threads)
     config = CompressConfig.for_preset(args.preset, iterations=args.iterations, max_levels=args.max_levels,
                                        device="cpu", pictures=False)  # fmt: skip
