@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .colmap import COLMAP_MODELS, colmap_frames, colmap_model_dir, load_colmap, read_colmap_model
-from .images import load_frames, read_image, read_premultiplied, resize_image
+from .images import load_frames, load_views, read_image, read_premultiplied, resize_image
 from .nerf import has_transforms, load_nerf_synthetic, nerf_synthetic_frames, write_nerf_synthetic
 from .posed import (
     LLFF_HOLD,
@@ -25,8 +25,6 @@ from .posed import (
     View,
     check_background,
     composite,
-    scaled,
-    subsample,
 )
 
 __all__ = [
@@ -73,12 +71,11 @@ def load_dataset(
 ) -> list[View]:
     """Views of a NeRF-Synthetic or COLMAP dataset, whichever ``root`` holds."""
     background = check_background(background)
-    return [View(p.camera, p.on(background), p.name) for p in load_photographs(root, split, max_views, scale)]
+    return load_views(dataset_frames(root, split), background, max_views, scale)
 
 
 def load_photographs(
     root: str | Path, split: Split = "all", max_views: int | None = None, scale: float = 1.0
 ) -> list[Photograph]:
     """The views of ``load_dataset`` before they are laid on a background."""
-    frames = subsample(dataset_frames(root, split), max_views)
-    return load_frames([PosedFrame(scaled(f.camera, scale), f.path, f.name) for f in frames])
+    return load_frames(dataset_frames(root, split), max_views, scale)

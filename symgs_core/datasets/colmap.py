@@ -32,8 +32,6 @@ from .posed import (
     in_split,
     inside,
     rotation_ok,
-    scaled,
-    subsample,
 )
 
 # COLMAP camera models: id -> (name, parameter count).
@@ -360,6 +358,5 @@ def load_colmap(
 ) -> list[View]:
     """Views of a COLMAP dataset (see the module docstring for models, image folders and the hold-out split)."""
     background = check_background(background)
-    frames = subsample(colmap_frames(root, split, images=images, ignore_distortion=ignore_distortion), max_views)
-    frames = [PosedFrame(scaled(f.camera, scale), f.path, f.name) for f in frames]
-    return load_views(frames, background)
+    return load_views(colmap_frames(root, split, images=images, ignore_distortion=ignore_distortion), background,
+                      max_views, scale)  # fmt: skip

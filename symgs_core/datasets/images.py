@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .posed import DatasetError, Photograph, PosedFrame, View, composite
+from .posed import DatasetError, Photograph, PosedFrame, View, composite, scaled, subsample
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -53,17 +53,21 @@ def resize_image(image: Tensor, width: int, height: int) -> Tensor:
     return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
 
 
-def load_frames(frames: list[PosedFrame]) -> list[Photograph]:
+def load_frames(frames: list[PosedFrame], max_views: int | None = None, scale: float = 1.0) -> list[Photograph]:
+    """The photographs of at most ``max_views`` of ``frames`` (evenly spaced, in order), each at its camera's size
+    times ``scale``."""
     photographs = []
-    for frame in frames:
+    for frame in subsample(frames, max_views):
+        camera = scaled(frame.camera, scale)
         colour, alpha = read_premultiplied(frame.path)
-        w, h = frame.camera.width, frame.camera.height
         # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
         # what resizing the composite would.
-        alpha = None if alpha is None else resize_image(alpha, w, h)
-        photographs.append(Photograph(frame.camera, resize_image(colour, w, h), alpha, frame.name))
+        alpha = None if alpha is None else resize_image(alpha, camera.width, camera.height)
+        photographs.append(Photograph(camera, resize_image(colour, camera.width, camera.height), alpha, frame.name))
     return photographs
 
 
-def load_views(frames: list[PosedFrame], background: tuple[float, float, float]) -> list[View]:
-    return [View(p.camera, p.on(background), p.name) for p in load_frames(frames)]
+def load_views(frames: list[PosedFrame], background: tuple[float, float, float], max_views: int | None = None,
+               scale: float = 1.0) -> list[View]:  # fmt: skip
+    """``load_frames``, laid on ``background``."""
+    return [View(p.camera, p.on(background), p.name) for p in load_frames(frames, max_views, scale)]

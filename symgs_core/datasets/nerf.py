@@ -33,8 +33,6 @@ from .posed import (
     held_out,
     inside,
     rotation_ok,
-    scaled,
-    subsample,
 )
 
 _NERF_SPLITS = ("train", "val", "test")
@@ -188,9 +186,7 @@ def load_nerf_synthetic(
 ) -> list[View]:
     """Views of a NeRF-Synthetic split, RGBA composited on ``background``, resized by ``scale``."""
     background = check_background(background)
-    frames = subsample(nerf_synthetic_frames(root, split), max_views)
-    frames = [PosedFrame(scaled(f.camera, scale), f.path, f.name) for f in frames]
-    return load_views(frames, background)
+    return load_views(nerf_synthetic_frames(root, split), background, max_views, scale)
 
 
 def write_nerf_synthetic(root: str | Path, split: Split, cameras: list[Camera], images: list[Tensor]) -> None:
