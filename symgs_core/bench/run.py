@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import torch
 
@@ -180,11 +180,10 @@ def next_floor(
     # Only runs that held their floor say where a floor lands: a preset that fits nothing (fixed steps) does not.
     ours = [r for r in rows if r.scene == scene and r.method == method and r.ok
             and (r.preset not in PRESETS or PRESETS[r.preset].fitted)]  # fmt: skip
-    landed = [(getattr(r, field), r.floor_db) for r in ours]
-    landed = [(p, f) for p, f in landed if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
+    figures = [(getattr(r, field), r.floor_db) for r in ours]
+    landed = [(p, f) for p, f in figures if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
     # The offset of the run that landed nearest the target: runs far from it, at other steps, land differently.
-    # After the filter above no figure in ``landed`` is None.
-    offset = min(cast(list[tuple[float, float]], landed), key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
+    offset = min(landed, key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
     offset_db = offset[0] - offset[1]
     front = curve.front(curve_points(rows, scene, method, field))
     up = not front or target > front[-1][1]

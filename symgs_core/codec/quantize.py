@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -198,8 +198,8 @@ def _position_grid(values: np.ndarray, step: float) -> tuple[float, np.ndarray] 
     """
     columns = [np.unique(values[:, a]) for a in range(3)]
     gaps = [_grid_step(c.astype(np.float64), MAX_POSITION_GRID_LEVELS) for c in columns]
-    steps = cast(list[float], gaps)  # read only once None is ruled out
-    if None in gaps or max(steps) - min(steps) > GRID_AGREEMENT * min(steps):
+    steps = [g for g in gaps if g is not None]
+    if len(steps) < 3 or max(steps) - min(steps) > GRID_AGREEMENT * min(steps):
         return None
     gap, origin = _fit_grid(columns, sum(steps) / 3)
     return _multiple(gap, step), origin

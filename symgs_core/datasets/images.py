@@ -8,7 +8,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .posed import DatasetError, Photograph, PosedFrame, View, composite, scaled, subsample
+from ..cameras import Camera
+from .posed import DatasetError, Photograph, PosedFrame, View, composite
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -57,8 +58,8 @@ def load_frames(frames: list[PosedFrame], max_views: int | None = None, scale: f
     """The photographs of at most ``max_views`` of ``frames`` (evenly spaced, in order), each at its camera's size
     times ``scale``."""
     photographs = []
-    for frame in subsample(frames, max_views):
-        camera = scaled(frame.camera, scale)
+    for frame in _subsample(frames, max_views):
+        camera = _scaled(frame.camera, scale)
         colour, alpha = read_premultiplied(frame.path)
         # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
         # what resizing the composite would.
@@ -71,3 +72,18 @@ def load_views(frames: list[PosedFrame], background: tuple[float, float, float],
                scale: float = 1.0) -> list[View]:  # fmt: skip
     """``load_frames``, laid on ``background``."""
     return [View(p.camera, p.on(background), p.name) for p in load_frames(frames, max_views, scale)]
+
+
+def _scaled(camera: Camera, scale: float) -> Camera:
+    if scale == 1.0:
+        return camera
+    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+
+
+def _subsample(frames: list[PosedFrame], max_views: int | None) -> list[PosedFrame]:
+    """At most ``max_views`` frames, evenly spaced over the list, in order."""
+    if max_views is None or max_views >= len(frames):
+        return frames
+    if max_views <= 0:
+        raise ValueError(f"max_views must be positive, got {max_views}")
+    return [frames[i * len(frames) // max_views] for i in range(max_views)]

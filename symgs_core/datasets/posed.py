@@ -98,21 +98,6 @@ def held_out(frames: list[PosedFrame], split: Split) -> list[PosedFrame]:
     return [f for i, f in enumerate(sorted(frames, key=lambda f: f.name)) if in_split(i, split)]
 
 
-def scaled(camera: Camera, scale: float) -> Camera:
-    if scale == 1.0:
-        return camera
-    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
-
-
-def subsample(frames: list[PosedFrame], max_views: int | None) -> list[PosedFrame]:
-    """At most ``max_views`` frames, evenly spaced over the list, in order."""
-    if max_views is None or max_views >= len(frames):
-        return frames
-    if max_views <= 0:
-        raise ValueError(f"max_views must be positive, got {max_views}")
-    return [frames[i * len(frames) // max_views] for i in range(max_views)]
-
-
 def check_background(background: tuple[float, float, float]) -> tuple[float, float, float]:
     values = tuple(float(v) for v in background)
     if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):

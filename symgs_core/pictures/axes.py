@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from typing import cast
 
 from matplotlib.axes import Axes
 
@@ -27,10 +26,8 @@ def psnr_axis(ax: Axes, values: Iterable[float | None], floor: float | None = No
     """Set ``ax``'s y range over the finite PSNRs (and ``floor``); returns the y at which to draw a PSNR, the band
     above the range for lossless ones."""
     values = list(values)
-    # None counts as lossless: no None is left among the finite values.
-    finite = cast(list[float], [v for v in values if not is_lossless(v)]) + (
-        [floor] if floor is not None and math.isfinite(floor) else []
-    )
+    finite = [v for v in values if v is not None and not is_lossless(v)]  # None is lossless
+    finite += [floor] if floor is not None and math.isfinite(floor) else []
     lo, hi = (min(finite), max(finite)) if finite else (0.0, 1.0)
     pad = max(0.08 * (hi - lo), 0.5)
     if not any(is_lossless(v) for v in values):
