@@ -20,6 +20,10 @@ What a mirror without residuals does instead is replace the paired Gaussians by 
 last columns render that, before any fine-tune, on the default fitting cameras against the input's own renders (the
 reference when a scene comes without photographs), beside the same Gaussians simply left out: where the replaced
 scene scores no better than the one without them, the reflections carry nothing of the Gaussians they replace.
+Between them, each half of what a reflection carries on its own: the partners' reflected geometry (position, shape
+and opacity) with the paired Gaussians' own colours, and the paired Gaussians' own geometry with their partners'
+reflected colours. Where both stay far below the floor, neither a mirror that stores colours per copy nor one that
+stores geometry per copy would come near it.
 
     python benchmarks/bench_twins.py ../shared/data/fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply --synthetic
 """
@@ -27,6 +31,7 @@ scene scores no better than the one without them, the reflections carry nothing 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +92,11 @@ def fitting_psnr(scene, scenes: list) -> list[float]:  # noqa: ANN001 - Gaussian
     return [evaluate(s, views.fit, background, with_ssim=False).worst for s in scenes]
 
 
+def mixed(geometry, colour):  # noqa: ANN001, ANN201 - GaussianScene
+    """Gaussians with the positions, shapes and opacities of ``geometry`` and the SH colours of ``colour``."""
+    return dataclasses.replace(geometry, sh_dc=colour.sh_dc, sh_rest=colour.sh_rest)
+
+
 def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     from symgs_core.codec.entropy import encode_table
     from symgs_core.codec.frames import canonical_frames
@@ -118,8 +128,9 @@ def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
     without = section_bytes(others, codecs, own)
     row = {"gaussians": len(scene), "paired": len(mine)}
     row["near"] = int(np.logical_and.reduce([(np.abs(own[k] - partner[k]) <= NEAR).all(axis=1) for k in own]).sum())
-    replaced = GaussianScene.cat([others, mirrored.select(torch.from_numpy(theirs))])
-    row["psnr"] = fitting_psnr(scene, [replaced, others])
+    partners, paired = mirrored.select(torch.from_numpy(theirs)), dropped.select(torch.from_numpy(mine))
+    variants = [partners, mixed(partners, paired), mixed(paired, partners)]
+    row["psnr"] = fitting_psnr(scene, [GaussianScene.cat([others, v]) for v in variants] + [others])
     for group, names in GROUPS.items():
         names = [n for n in names if n in own]  # SH degree 0: no higher bands
         row[group] = (sum(whole[n] - without[n] for n in names),
@@ -145,7 +156,8 @@ def main() -> None:
                          lambda c=capture: synthetic_scene("global", n=50000, seed=0, sh_degree=1, capture=c).scene))
     heads = " | ".join(f"{g} plain / residual B" for g in GROUPS)
     print(f"| scene | Gaussians | dropped half, paired | near twins (within {NEAR} steps) | {heads} | all: plain B | "
-          "residual B | residual / plain | fitting PSNR dB, paired replaced by reflections / left out |")
+          "residual B | residual / plain | fitting PSNR dB, paired replaced by reflections / reflected geometry, own "
+          "colours / own geometry, reflected colours / left out |")
     print("|---|---:|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|---:|")
     for name, load in jobs:
         row = measure(load())
@@ -155,7 +167,7 @@ def main() -> None:
         plain, residual = (sum(row[g][i] for g in GROUPS) for i in (0, 1))
         cells = " | ".join(f"{row[g][0]:,} / {row[g][1]:,}" for g in GROUPS)
         print(f"| {name} | {row['gaussians']:,} | {row['paired']:,} | {row['near']:,} | {cells} | {plain:,} | "
-              f"{residual:,} | {residual / plain:.3f} | {row['psnr'][0]:.2f} / {row['psnr'][1]:.2f} |",
+              f"{residual:,} | {residual / plain:.3f} | {' / '.join(f'{p:.2f}' for p in row['psnr'])} |",
               flush=True)  # fmt: skip
 
 
