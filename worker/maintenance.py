@@ -35,8 +35,17 @@ class SweepReport:
     expired: list[str] = field(default_factory=list)
 
 
-def recover_lost(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
-    """Re-queue running jobs whose lease expired; fail them after ``max_attempts`` runs or past the time limit."""
+def delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None:
+    """Delete a finished job, record and files, that its client asked to delete while it ran."""
+    record = store.get(job_id)
+    if record is not None and record.delete_requested and record.finished:
+        storage.delete(owner=record.owner, job_id=job_id)
+        store.delete(job_id)
+
+
+def recover_lost(store: JobStore, storage: Storage, celery: Celery, settings: Settings, report: SweepReport) -> None:
+    """Re-queue running jobs whose lease expired; fail them after ``max_attempts`` runs or past the time limit.
+    A job whose client asked to delete it while it ran is deleted once it ends here, as its worker would have."""
     now = time.time()
     for job_id in store.ids_in_state("running"):
         if store.lease_held(job_id):
@@ -67,6 +76,8 @@ def recover_lost(store: JobStore, celery: Celery, settings: Settings, report: Sw
                 send_compress(celery, job_id, queue)
                 report.requeued.append(job_id)
                 log.warning("job %s lost its worker; queued again on %s", job_id, queue)
+            continue
+        delete_if_requested(store, storage, job_id)
 
 
 def recover_dropped(store: JobStore, celery: Celery, settings: Settings, report: SweepReport) -> None:
@@ -121,7 +132,7 @@ def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepR
 
 def sweep(store: JobStore, storage: Storage, celery: Celery, settings: Settings) -> SweepReport:
     report = SweepReport()
-    recover_lost(store, celery, settings, report)
+    recover_lost(store, storage, celery, settings, report)
     recover_dropped(store, celery, settings, report)
     reroute_stranded(store, celery, settings, report)
     expire(store, storage, settings, report)

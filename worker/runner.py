@@ -21,6 +21,7 @@ from redis import RedisError
 from api_schemas import JobMetrics, MirrorSummary
 from symgs_core.progress import Eta
 
+from .maintenance import delete_if_requested
 from .settings import Settings
 from .storage import Storage
 from .store import JobRecord, JobStore
@@ -179,7 +180,7 @@ def run_job(
         heartbeat.stop()
         if not failed:  # after a failure the on_failure hook marks the job first, then releases the lease
             store.release_lease(job_id, token)
-            _delete_if_requested(store, storage, job_id)
+            delete_if_requested(store, storage, job_id)
 
 
 def _run_leased(
@@ -246,13 +247,6 @@ def _run_leased(
     return "succeeded"
 
 
-def _delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None:
-    record = store.get(job_id)
-    if record is not None and record.delete_requested and record.finished:
-        storage.delete(owner=record.owner, job_id=job_id)
-        store.delete(job_id)
-
-
 def input_errors() -> tuple[type[ValueError], ...]:
     """The errors that are the input's, each with a machine-readable ``code``: what the client sent must change."""
     from symgs_core.datasets import DatasetError
@@ -286,5 +280,5 @@ def mark_failed(
         return None
     record = store.transition(job_id, "failed", error_code=code, error_message=message[:2000])
     store.release_lease(job_id, token)
-    _delete_if_requested(store, storage, job_id)
+    delete_if_requested(store, storage, job_id)
     return record

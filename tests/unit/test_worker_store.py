@@ -141,6 +141,7 @@ def _settings(redis_url: str, tmp_path: Path, **overrides) -> Settings:  # noqa:
 def test_lost_jobs_are_requeued_then_failed(store: JobStore, redis_url: str, tmp_path: Path) -> None:
     settings = _settings(redis_url, tmp_path)
     celery = make_celery(settings)
+    storage = DirectoryStorage(tmp_path)
     alive, lost, cancelled = _job(1), _job(2), _job(3)
     for record in (alive, lost, cancelled):
         store.create(record)
@@ -149,20 +150,41 @@ def test_lost_jobs_are_requeued_then_failed(store: JobStore, redis_url: str, tmp
     store.request_cancel(cancelled.id, 60)
 
     report = SweepReport()
-    recover_lost(store, celery, settings, report)
+    recover_lost(store, storage, celery, settings, report)
     assert report.requeued == [lost.id] and report.cancelled == [cancelled.id]
     assert store.get(lost.id).state == "queued" and store.get(alive.id).state == "running"
     assert store.r.llen("cpu") == 1  # the task message, on the cpu queue since no gpu worker is alive
     again = SweepReport()
-    recover_lost(store, celery, settings, again)
+    recover_lost(store, storage, celery, settings, again)
     assert again == SweepReport()  # nothing twice
 
     store.transition(lost.id, "running", attempts=2)  # the second run is lost too: max_attempts reached
     final = SweepReport()
-    recover_lost(store, celery, settings, final)
+    recover_lost(store, storage, celery, settings, final)
     assert final.failed == [lost.id]
     failed = store.get(lost.id)
     assert (failed.state, failed.error_code) == ("failed", "worker_lost")
+
+
+def test_a_lost_job_deleted_while_it_ran_is_deleted_when_recovered(
+    store: JobStore, redis_url: str, tmp_path: Path
+) -> None:
+    """The API answered 202 "deleted once stopped" and its worker died: the sweep that ends the job deletes it, record
+    and files, as the worker would have."""
+    settings = _settings(redis_url, tmp_path)
+    celery, storage = make_celery(settings), DirectoryStorage(tmp_path)
+    record = _job(1)
+    store.create(record)
+    store.transition(record.id, "running", attempts=1, started_at=time.time())
+    storage.write_artifact(owner=record.owner, job_id=record.id, name="report.json", data=b"{}")
+    store.request_cancel(record.id, 60)
+    store.update(record.id, delete_requested=True)
+
+    report = SweepReport()
+    recover_lost(store, storage, celery, settings, report)
+    assert report.cancelled == [record.id]
+    assert store.get(record.id) is None and not storage.job_dir(record.owner, record.id).exists()
+    assert store.r.llen("cpu") == 0  # not queued again
 
 
 def test_queued_jobs_whose_message_is_gone_are_sent_again(store: JobStore, redis_url: str, tmp_path: Path) -> None:
