@@ -86,8 +86,13 @@ def test_events_arrive_in_order_and_replay(done_job: dict, api_a: httpx.Client) 
     assert replay == messages[middle + 1 :]
     with api_a.stream("GET", url, headers={"Last-Event-ID": messages[-1]["id"]}) as response:
         assert read_sse(response) == []
-    bad = api_a.get(url, headers={"Last-Event-ID": "yesterday"})
-    assert bad.status_code == 422 and bad.json()["error"]["code"] == "bad_last_event_id"
+    # The last ones are shaped like stream ids but not ones Redis can read after: past 64 bits, or its largest id
+    largest = f"{2**64 - 1}-{2**64 - 1}"
+    for bad_id in ("yesterday", f"{2**64}-0", f"0-{2**64}", "99999999999999999999-0", largest):
+        bad = api_a.get(url, headers={"Last-Event-ID": bad_id})
+        assert bad.status_code == 422 and bad.json()["error"]["code"] == "bad_last_event_id", bad_id
+    with api_a.stream("GET", url, headers={"Last-Event-ID": f"{2**64 - 1}-0"}) as response:
+        assert response.status_code == 200 and read_sse(response) == []
 
 
 def test_api_keys_cannot_see_each_others_jobs(done_job: dict, api_b: httpx.Client, stack) -> None:  # noqa: ANN001

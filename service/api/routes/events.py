@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import logging
 import re
 from collections.abc import AsyncIterator
 from typing import Annotated
 
 import redis.asyncio as aioredis
 from fastapi import APIRouter, Header, Request
+from redis import RedisError
 from sse_starlette import EventSourceResponse
 
 from api_schemas import TERMINAL_STATES
@@ -19,13 +21,33 @@ from ..errors import ApiError, error_responses
 from ..job_view import owned_record
 
 router = APIRouter(prefix="/v1/jobs", tags=["events"])
-_STREAM_ID = re.compile(r"^\d{1,20}-\d{1,20}$")
+log = logging.getLogger(__name__)
+_STREAM_ID = re.compile(r"^(\d{1,20})-(\d{1,20})$")
+_ID_PART_MAX = 2**64 - 1  # each half of a Redis stream id is an unsigned 64-bit integer
 _WAIT_MS = 10_000  # block this long for new events before checking that the job still exists
 _BATCH = 200
 
 
 async def job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterator[dict]:
-    """SSE messages of a job's stream after id ``after``, ending with the event of a final state."""
+    """SSE messages of a job's stream after id ``after``, ending with the event of a final state. Should Redis go
+    away, the stream ends early: the client resumes with the last id it received, as SSE clients do."""
+    try:
+        async for message in _job_events(r, job_id, after):
+            yield message
+    except RedisError as exc:
+        log.warning("events of job %s: the job store went away (%s); ending the stream", job_id, type(exc).__name__)
+
+
+def _is_stream_id(text: str) -> bool:
+    """Whether ``text`` is a Redis stream id with ids after it (Redis refuses to read after the largest one)."""
+    match = _STREAM_ID.match(text)
+    if match is None:
+        return False
+    ms, seq = (int(part) for part in match.groups())
+    return ms <= _ID_PART_MAX and seq <= _ID_PART_MAX and (ms, seq) != (_ID_PART_MAX, _ID_PART_MAX)
+
+
+async def _job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterator[dict]:
     key = events_key(job_id)
     while True:
         entries = await r.xrange(key, min=f"({after}", count=_BATCH)
@@ -79,7 +101,7 @@ def get_events(
 ) -> EventSourceResponse:
     owned_record(store, owner, job_id)
     after = last_event_id or "0-0"
-    if not _STREAM_ID.match(after):
+    if not _is_stream_id(after):
         message = f"Last-Event-ID must be a stream id like 1767225600000-0, got {after[:40]!r}"
         raise ApiError(422, "bad_last_event_id", message)
     return EventSourceResponse(job_events(request.app.state.aredis, job_id, after), ping=15)
