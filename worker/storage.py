@@ -24,9 +24,10 @@ import time
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from symgs_core.export.formats import EXPORTS
 
@@ -39,6 +40,18 @@ CHUNK_BYTES = 1 << 20  # read size when a result is streamed to a client
 
 class StorageError(OSError):
     """The storage backend failed or is unreachable (the API answers 503)."""
+
+
+@contextmanager
+def disk_errors() -> Iterator[None]:
+    """A failing disk (full, read-only, unmounted, a folder where a file belongs) raised as StorageError, as the S3
+    backend raises its failures, so that the API answers 503 and not an unexplained 500."""
+    try:
+        yield
+    except StorageError:
+        raise
+    except OSError as exc:
+        raise StorageError(f"{type(exc).__name__}: {exc}") from exc
 
 
 def check_job_id(job_id: str) -> str:
@@ -134,10 +147,26 @@ class Storage(ABC):
         """Remove what dead processes left behind (uploads never adopted, local copies of jobs); how many."""
 
 
-def read_chunks(path: Path) -> Iterator[bytes]:
-    with open(path, "rb") as f:
+def read_chunks(f: BinaryIO) -> Iterator[bytes]:
+    with f:
         while chunk := f.read(CHUNK_BYTES):
             yield chunk
+
+
+def open_file(path: Path) -> Artifact | None:
+    """``path`` opened for streaming, or None when it does not exist. Opened here, before a response starts, so
+    that a file that cannot be read is a 503 and not a 200 cut short."""
+    with disk_errors():
+        try:
+            f = open(path, "rb")  # noqa: SIM115 - closed by read_chunks
+        except FileNotFoundError:
+            return None
+        try:
+            size = os.fstat(f.fileno()).st_size
+        except OSError:
+            f.close()
+            raise
+    return Artifact(size, read_chunks(f))
 
 
 def sweep_folders(parent: Path, older_than_s: float) -> int:
@@ -168,39 +197,32 @@ class DirectoryStorage(Storage):
 
     def new_staging(self) -> Path:
         path = self.root / "staging" / uuid.uuid4().hex
-        path.mkdir(parents=True)
+        with disk_errors():
+            path.mkdir(parents=True)
         return path
 
     def adopt(self, staging: Path, *, owner: str, job_id: str) -> None:
         job = self.job_dir(owner, job_id)
-        job.mkdir(parents=True, exist_ok=True)
-        os.replace(staging, job / "upload")
+        with disk_errors():
+            job.mkdir(parents=True, exist_ok=True)
+            os.replace(staging, job / "upload")
 
     def workspace(self, *, owner: str, job_id: str) -> Workspace:
         return _DirectoryWorkspace(self.job_dir(owner, job_id))
 
     def write_artifact(self, *, owner: str, job_id: str, name: str, data: bytes) -> None:
         path = self.job_dir(owner, job_id) / "result" / check_artifact(name)
-        path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
-        partial.write_bytes(data)
-        os.replace(partial, path)
+        with disk_errors():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial.write_bytes(data)
+            os.replace(partial, path)
 
     def open_artifact(self, *, owner: str, job_id: str, name: str) -> Artifact | None:
-        path = self.job_dir(owner, job_id) / "result" / check_artifact(name)
-        try:
-            size = path.stat().st_size
-        except FileNotFoundError:
-            return None
-        return Artifact(size, read_chunks(path))
+        return open_file(self.job_dir(owner, job_id) / "result" / check_artifact(name))
 
     def open_upload(self, *, owner: str, job_id: str) -> Artifact | None:
-        path = self.job_dir(owner, job_id) / "upload" / "scene.ply"
-        try:
-            size = path.stat().st_size
-        except FileNotFoundError:
-            return None
-        return Artifact(size, read_chunks(path))
+        return open_file(self.job_dir(owner, job_id) / "upload" / "scene.ply")
 
     def artifact_names(self, *, owner: str, job_id: str) -> list[str]:
         result = self.job_dir(owner, job_id) / "result"

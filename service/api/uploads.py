@@ -15,6 +15,8 @@ from python_multipart.multipart import MultipartParser, MultipartState, parse_op
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
+from worker.storage import StorageError
+
 from .errors import ApiError
 
 MAX_PARAMS_BYTES = 64 << 10
@@ -124,6 +126,9 @@ async def receive_upload(request: Request, folder: Path, *, max_bytes: int) -> U
     parser = MultipartParser(options[b"boundary"], callbacks)  # type: ignore[arg-type]
     declared = request.headers.get("content-length", "")
     too_large = declared.isdigit() and int(declared) > max_bytes
+    over_limit = ApiError(413, "upload_too_large", f"the upload exceeds the limit of {max_bytes} bytes")
+    if too_large and request.headers.get("expect", "").lower() == "100-continue":
+        raise over_limit  # the client waits for this answer before it sends the body: nothing to drain
     total = 0
     try:
         async for chunk in request.stream():
@@ -147,10 +152,12 @@ async def receive_upload(request: Request, folder: Path, *, max_bytes: int) -> U
         raise ApiError(422, "bad_multipart", f"the multipart body is malformed ({exc})") from None
     except ClientDisconnect:
         raise ApiError(400, "client_disconnected", "the client went away during the upload") from None
+    except OSError as exc:  # the staging disk: full, read-only, gone
+        raise StorageError(f"staging the upload: {type(exc).__name__}: {exc}") from exc
     finally:
         receiver.close()
     if too_large:
-        raise ApiError(413, "upload_too_large", f"the upload exceeds the limit of {max_bytes} bytes")
+        raise over_limit
     if receiver.error is not None:
         raise receiver.error
     if "scene" not in receiver.sizes:

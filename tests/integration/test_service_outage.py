@@ -1,10 +1,14 @@
-"""Redis out of reach: the API answers 503 JSON ``unavailable`` with Retry-After, keeps no files of a refused
-submission, and serves again once Redis is back. A stack of its own (Redis and the API; no worker needed)."""
+"""Redis or the storage out of reach: the API answers 503 JSON (``unavailable``, ``storage_unavailable``) with
+Retry-After, keeps no files of a refused submission, and serves again once they are back. A stack of its own (Redis
+and the API; no worker needed)."""
 
 from __future__ import annotations
 
 import json
+import shutil
+import socket
 from collections.abc import Iterator
+from urllib.parse import urlsplit
 
 import httpx
 import pytest
@@ -57,3 +61,50 @@ def test_redis_down_answers_503_and_leaves_no_files(outage_stack: LocalStack, sm
     again = api.post("/v1/jobs", files={"scene": ("s.ply", small_ply)}, data=data)
     assert again.status_code == 202, again.text
     api.close()
+
+
+def test_storage_out_of_reach_answers_503(outage_stack: LocalStack, small_ply: bytes) -> None:
+    """A disk that cannot take an upload or give a file back (full, read-only, unmounted: here a file where a folder
+    belongs, and the reverse) is a 503 storage_unavailable, before any byte of a download is sent."""
+    api = httpx.Client(base_url=outage_stack.api_url, headers={"Authorization": f"Bearer {KEY_A}"}, timeout=60)
+    data = {"params": json.dumps(TINY)}
+    accepted = api.post("/v1/jobs", files={"scene": ("s.ply", small_ply)}, data=data)
+    assert accepted.status_code == 202, accepted.text
+    job_id = accepted.json()["id"]
+    storage = outage_stack.root / "storage"
+    (scene,) = (p for p in storage.rglob("scene.ply") if job_id in p.parts)
+    aside = scene.with_name("aside.ply")
+    scene.rename(aside)
+    scene.mkdir()
+    broken = api.get(f"/v1/jobs/{job_id}/scene")
+    assert broken.status_code == 503, broken.text
+    assert broken.json()["error"]["code"] == "storage_unavailable" and broken.headers["retry-after"] == "5"
+    scene.rmdir()
+    aside.rename(scene)
+    assert api.get(f"/v1/jobs/{job_id}/scene").content == small_ply
+
+    staging = storage / "staging"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.write_bytes(b"")
+    refused = api.post("/v1/jobs", files={"scene": ("s.ply", small_ply)}, data=data)
+    assert refused.status_code == 503, refused.text
+    assert refused.json()["error"]["code"] == "storage_unavailable"
+    staging.unlink()
+    assert api.post("/v1/jobs", files={"scene": ("s.ply", small_ply)}, data=data).status_code == 202
+    api.close()
+
+
+def test_an_upload_declared_over_the_cap_is_refused_before_its_body(outage_stack: LocalStack) -> None:
+    """A client that asks before sending (``Expect: 100-continue``, as curl does for large bodies) gets the 413 at
+    once instead of a go-ahead and a read of what it sends."""
+    url = urlsplit(outage_stack.api_url)
+    head = (f"POST /v1/jobs HTTP/1.1\r\nHost: {url.netloc}\r\nAuthorization: Bearer {KEY_A}\r\n"
+            "Content-Type: multipart/form-data; boundary=b\r\nContent-Length: 1000000000000\r\n"
+            "Expect: 100-continue\r\n\r\n")  # fmt: skip
+    with socket.create_connection((url.hostname, url.port), timeout=30) as sock:
+        sock.sendall(head.encode())
+        answer = b""
+        while chunk := sock.recv(65536):  # the server closes: it will not read a body it refused
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+    assert b"upload_too_large" in answer

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from worker.storage import DirectoryStorage
+from worker.storage import DirectoryStorage, StorageError
 
 JOB = "0123456789abcdef0123456789abcdef"
 OWNER = "0f1e2d3c4b5a69788796a5b4"
@@ -47,6 +47,24 @@ def test_upload_is_adopted_and_results_overwrite(tmp_path: Path) -> None:
     storage.delete(owner=OWNER, job_id=JOB)
     assert not job.exists()
     storage.delete(owner=OWNER, job_id=JOB)  # nothing left: no error
+
+
+def test_a_failing_disk_is_a_storage_error(tmp_path: Path) -> None:
+    """A disk that cannot take or give a file (full, read-only, a folder where a file belongs) fails as StorageError,
+    which the API answers with 503 storage_unavailable, and a file is opened before any byte of it is sent."""
+    storage = DirectoryStorage(tmp_path)
+    (tmp_path / "staging").write_bytes(b"")  # a file where the staging folder belongs
+    with pytest.raises(StorageError):
+        storage.new_staging()
+    result = tmp_path / "tenants" / OWNER / "jobs" / JOB / "result"
+    (result / "report.json").mkdir(parents=True)
+    with pytest.raises(StorageError):
+        storage.open_artifact(owner=OWNER, job_id=JOB, name="report.json")
+    with pytest.raises(StorageError):
+        storage.write_artifact(owner=OWNER, job_id=JOB, name="report.json", data=b"{}")
+    (result / "charts").write_bytes(b"")  # a file where a folder belongs
+    with pytest.raises(StorageError):
+        storage.write_artifact(owner=OWNER, job_id=JOB, name="charts/a.png", data=b"png")
 
 
 @pytest.mark.parametrize("name", ["../x", "result.symgs/../../x", "charts/../../a.png", "charts/a b.png", "other"])

@@ -79,7 +79,7 @@ for _fmt in EXPORTS:
     description="The `.ply` scene as this job received it, whatever the job's state; the dashboard's viewer shows "
     "it beside the decoded result.",
     response_class=StreamingResponse,
-    responses={**_binary("the uploaded scene", "application/x-ply"), **error_responses(401, 404)},
+    responses={**_binary("the uploaded scene", "application/x-ply"), **error_responses(401, 404, 503)},
 )
 def get_scene(job_id: str, owner: OwnerDep, store: StoreDep, storage: StorageDep) -> StreamingResponse:
     record = owned_record(store, owner, job_id)
