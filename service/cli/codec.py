@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
-from .parser import CliError, check_output, check_seed, error_text
+from .parser import CliError, check_distinct, check_output, check_seed, error_text, write_output
 
 HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
 
@@ -85,21 +85,19 @@ def _compress(args: argparse.Namespace) -> int:
     check_output("-o", args.output)
     check_output("--report", args.report)
     check_output("--pictures", args.pictures, folder=True)
+    check_distinct({"scene": args.scene, "-o": args.output, "--report": args.report, "--pictures": args.pictures})
     config = config_from_args(args)
     with LocalProgress(Console(stderr=True), quiet=args.quiet) as progress:
         try:
             result = compress(args.scene, images=args.images, config=config, progress=progress)
         except ValueError as exc:  # PlyError, DatasetError and bad settings all say what is wrong
             raise CliError(error_text(exc)) from exc
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_bytes(result.archive)
+    write_output("-o", args.output, result.archive)
     if args.report is not None:
-        args.report.parent.mkdir(parents=True, exist_ok=True)
-        args.report.write_text(json.dumps(result.report.as_json(), indent=2))
+        write_output("--report", args.report, json.dumps(result.report.as_json(), indent=2).encode())
     if args.pictures is not None:
-        args.pictures.mkdir(parents=True, exist_ok=True)
         for name, png in result.images.items():
-            (args.pictures / f"{name}.png").write_bytes(png)
+            write_output("--pictures", args.pictures / f"{name}.png", png)
     r = result.report
     ratio = f"{r.ratio_to_ply:.2f}x vs PLY, " if r.ratio_to_ply else ""
     db = lambda x: "lossless" if math.isinf(x) else f"{x:.2f} dB"  # noqa: E731
@@ -124,6 +122,7 @@ def _decompress(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     check_output("-o", args.output)
+    check_distinct({"archive": args.archive, "-o": args.output})
     try:
         if args.archive.name.lower().endswith(HALF_PLY):  # the benchmarks' float16 PLY peer
             from symgs_core.bench.half_ply import read_half_ply
@@ -133,11 +132,17 @@ def _decompress(args: argparse.Namespace) -> int:
             scene = expand_archive(decode_archive(args.archive.read_bytes()))
     except ValueError as exc:  # ArchiveError, HalfPlyError
         raise CliError(f"{args.archive}: {error_text(exc)}") from exc
-    args.output.parent.mkdir(parents=True, exist_ok=True)
+    unbundled = fmt.folder_entry is not None and args.output.name.lower() == fmt.folder_entry
     try:
-        fmt.save(scene, args.output, version=args.spz_version)
+        if unbundled:  # several files in a folder: written in place
+            args.output.parent.mkdir(parents=True, exist_ok=True)
+            fmt.save(scene, args.output, version=args.spz_version)
+        else:
+            write_output("-o", args.output, fmt.write(scene, version=args.spz_version))
     except ValueError as exc:  # a scene the format cannot hold (e.g. positions beyond .spz's fixed point)
         raise CliError(f"{args.output}: {error_text(exc)}") from exc
+    except OSError as exc:  # a full disk, a folder gone
+        raise CliError(f"-o {args.output}: cannot write {exc.filename or args.output}: {exc.strerror or exc}") from None
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0
@@ -173,6 +178,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise CliError(str(exc).replace("eval_views", "--views").replace("eval_resolution", "--resolution")) from None
     try:
         reference = load_scene(args.reference)
+        if not len(reference):
+            raise CliError(f"empty_scene: {args.reference}: the reference has no Gaussians, nothing to compare with")
         is_archive = args.candidate.suffix.lower() == ".symgs"
         candidate = decompress(args.candidate) if is_archive else import_scene(args.candidate)
         views = self_supervised_views(

@@ -59,6 +59,37 @@ def check_output(option: str, path: Path | None, *, folder: bool = False) -> Non
         raise CliError(f"{option} {path}: {target} is not writable")
 
 
+def check_distinct(paths: dict[str, Path | None]) -> None:
+    """Refuse two options (or an input and an output) that name the same file: one would overwrite the other after
+    all the work, and the user's own data with it. ``paths`` maps each option's name to its path (None: not given)."""
+    seen: dict[Path, str] = {}
+    for option, path in paths.items():
+        if path is None:
+            continue
+        key = path.resolve()
+        if key in seen:
+            raise CliError(f"{option} {path} is the same file as {seen[key]}")
+        seen[key] = f"{option} {path}" if option.startswith("-") else f"the {option}"
+
+
+def write_output(option: str, path: Path, data: bytes) -> None:
+    """Write a whole output file, or refuse in one line (a full disk, a folder gone): never half a file under its
+    name, since a reader would take it for a result. A device or pipe (not a regular file) is written directly."""
+    if path.exists() and not path.is_file():
+        partial = path
+    else:
+        partial = path.with_name(f".{path.name}.partial")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial.write_bytes(data)
+        if partial != path:
+            os.replace(partial, path)
+    except OSError as exc:
+        if partial != path:
+            partial.unlink(missing_ok=True)
+        raise CliError(f"{option} {path}: cannot write {exc.filename or path}: {exc.strerror or exc}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="symgs", description="SymGS: symmetry-aware 3D Gaussian Splatting compression"

@@ -15,6 +15,7 @@ from ..cameras import COORDINATE_CONVENTION, scene_bounds
 from ..codec import decode_archive, expand_archive
 from ..codec.steps import QuantSteps
 from ..config import PRESETS, CompressConfig
+from ..ply_header import PlyError
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
@@ -121,7 +122,7 @@ def compress(
 
         source = checked_scene(source, name)[0]
     if not len(source):
-        raise ValueError(f"{name}: the scene has no Gaussians, there is nothing to compress")
+        raise PlyError("empty_scene", f"{name}: the scene has no Gaussians, there is nothing to compress")
     source = source.to(device)
     report.timed("load", time.perf_counter() - t0)
 

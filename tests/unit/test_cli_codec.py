@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import time
@@ -74,6 +75,10 @@ def test_bad_inputs_exit_2_with_a_message(scene_file, tmp_path, capsys):
 
 
 def test_errors_name_the_code_the_api_would(scene_file, tmp_path, capsys):  # noqa: ANN001
+    from symgs_core.scene import GaussianScene
+
+    empty = tmp_path / "empty.ply"
+    save_scene(GaussianScene.empty(0), empty)
     cut = tmp_path / "cut.ply"
     cut.write_bytes(scene_file.read_bytes()[:-100])
     corrupt = tmp_path / "corrupt.symgs"
@@ -82,6 +87,8 @@ def test_errors_name_the_code_the_api_would(scene_file, tmp_path, capsys):  # no
         (["evaluate", str(cut), str(scene_file)], "symgs evaluate: error: truncated: "),
         (["evaluate", str(scene_file), str(cut)], "symgs evaluate: error: truncated: "),
         (["evaluate", str(scene_file), str(corrupt)], "symgs evaluate: error: unsupported_version: "),
+        (["evaluate", str(empty), str(scene_file)], "symgs evaluate: error: empty_scene: "),
+        (["compress", str(empty), "-o", str(tmp_path / "e.symgs"), "--quiet"], "symgs compress: error: empty_scene: "),
         (["decompress", str(corrupt), "-o", str(tmp_path / "x.ply")], f"symgs decompress: error: {corrupt}: "
          "unsupported_version: "),
     ]:  # fmt: skip
@@ -124,6 +131,9 @@ def test_bad_archives_give_one_line_and_exit_2_for_every_format(scene_file, tmp_
         (["compress", "SCENE", "-o", "x.symgs", "--pictures", "afile"], "--pictures afile is a file; a folder is"),
         (["compress", "SCENE", "-o", "x.symgs", "--pictures", "afile/p"], "--pictures afile/p: afile is a file"),
         (["decompress", "ARCHIVE", "-o", "adir.ply"], "-o adir.ply is a folder"),
+        (["compress", "SCENE", "-o", "SCENE"], "is the same file as the scene"),
+        (["compress", "SCENE", "-o", "x.symgs", "--report", "adir/../x.symgs"],
+         "--report adir/../x.symgs is the same file as -o x.symgs"),
         (["decompress", "ARCHIVE", "-o", "afile/x.spz"], "-o afile/x.spz: afile is a file, not a folder"),
         (["bench", "SCENE", "--out", "afile"], "--out afile is a file; a folder is expected there"),
         (["fetch", "some-job", "-o", "afile/results"], "-o afile/results: afile is a file"),
@@ -146,6 +156,21 @@ def test_unwritable_outputs_exit_2_before_any_work(scene_file, tmp_path, capsys,
     assert captured.out == "" and len(captured.err.splitlines()) == 1, captured.err
     assert captured.err.startswith(f"symgs {argv[0]}: error: ") and message in captured.err, captured.err
     assert sorted(tmp_path.rglob("*")) == before
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full, a device whose every write fails")
+def test_a_write_that_fails_after_the_work_exits_2_in_one_line(scene_file, tmp_path, capsys):  # noqa: ANN001
+    """A disk that fills during the work: one line naming the file, exit 2, no traceback."""
+    full = tmp_path / "full.ply"
+    full.symlink_to("/dev/full")
+    archive = tmp_path / "a.symgs"
+    for argv in (["compress", str(scene_file), "-o", "/dev/full", *FAST, "--quiet"],
+                 ["compress", str(scene_file), "-o", str(archive), "--report", "/dev/full", *FAST, "--quiet"],
+                 ["decompress", str(archive), "-o", str(full)]):  # fmt: skip
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and "cannot write" in err and "No space left" in err, err
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no partial file left
 
 
 def test_an_output_in_a_folder_one_cannot_write_exits_2(scene_file, tmp_path, capsys, monkeypatch):  # noqa: ANN001

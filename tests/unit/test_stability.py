@@ -201,5 +201,6 @@ def test_no_symmetry():
 
 
 def test_an_empty_scene_is_refused_with_a_clear_error():
-    with pytest.raises(ValueError, match="no Gaussians"):
+    with pytest.raises(ValueError, match="no Gaussians") as caught:
         compress(GaussianScene.empty(0), config=CONFIG)
+    assert caught.value.code == "empty_scene"  # the code the API answers an empty upload with
