@@ -7,9 +7,9 @@ write the same archive.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from symgs_core.config import DEFAULT_PRESET, PRESETS, SEED_MAX, Preset
 
@@ -59,6 +59,20 @@ class JobParams(BaseModel):
     use_mirrors: bool | None = Field(None, description="false: the plain codec only (the baseline)")
     seed: int | None = Field(None, ge=0, le=SEED_MAX)
     device: DevicePreference = "auto"
+
+    @field_validator("preset", "device", mode="before")
+    @classmethod
+    def _null_takes_the_default(cls, value: Any, info: ValidationInfo) -> Any:
+        # The docstring's promise for every field; the others have None as their default already.
+        return cls.model_fields[info.field_name or ""].default if value is None else value
+
+    @field_validator("psnr_budget", mode="before")
+    @classmethod
+    def _no_boolean_budget(cls, value: Any) -> Any:
+        # Not strict, so that "0.5" reads as a number; Python's bools are ints, and true is no number of dB.
+        if isinstance(value, bool):
+            raise ValueError("a number of dB is expected, not a boolean")
+        return value
 
     def pipeline_overrides(self) -> dict:
         """The preset and the fields the client set, as keyword arguments of ``CompressConfig.for_preset``

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 
@@ -34,7 +35,8 @@ def test_params_map_onto_the_pipeline_config() -> None:
         ("{", "params"), ("[]", "params"), ('{"iterations": -1}', "iterations"), ('{"resolution": 8}', "resolution"),
         ('{"preset": "huge"}', "preset"), ('{"device": "tpu"}', "device"), ('{"detect": {}}', "detect"),
         ('{"max_levels": 17}', "max_levels"), ('{"psnr_budget": "a lot"}', "psnr_budget"),
-        ('{"psnr_budget": NaN}', "psnr_budget"),
+        ('{"psnr_budget": NaN}', "psnr_budget"), ('{"psnr_budget": true}', "psnr_budget"),
+        ('{"psnr_budget": false}', "psnr_budget"),
     ],
 )
 def test_bad_params_are_named(text: str, where: str) -> None:
@@ -62,6 +64,10 @@ def test_params_errors_read_plainly(text: str, message: str) -> None:
 
 def test_missing_params_mean_defaults() -> None:
     assert parse_params(None) == parse_params("{}") == JobParams()
+    # null is a field left out, for every field
+    every = {name: None for name in JobParams.model_fields}
+    assert parse_params(json.dumps(every)) == JobParams()
+    assert parse_params('{"psnr_budget": "0.5"}').psnr_budget == 0.5
 
 
 def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
