@@ -60,13 +60,24 @@ def test_metrics_want_a_key(stack, api_a: httpx.Client) -> None:  # noqa: ANN001
 
 def test_options_name_every_method_of_the_path(api_a: httpx.Client) -> None:
     job_id = "0" * 32
-    expected = {f"/v1/jobs/{job_id}:cancel": "POST, OPTIONS", f"/v1/jobs/{job_id}": "GET, DELETE, OPTIONS",
-                "/v1/jobs": "GET, POST, OPTIONS"}  # fmt: skip
+    expected = {f"/v1/jobs/{job_id}:cancel": "POST, OPTIONS", f"/v1/jobs/{job_id}": "GET, HEAD, DELETE, OPTIONS",
+                "/v1/jobs": "GET, HEAD, POST, OPTIONS"}  # fmt: skip
     for path, allow in expected.items():
         response = api_a.options(path)
         assert (response.status_code, response.headers["allow"]) == (204, allow), path
-    wrong = api_a.get(f"/v1/jobs/{job_id}:cancel")
-    assert wrong.status_code == 405 and wrong.headers["allow"] == "POST"
+    for method, path in (("GET", f"/v1/jobs/{job_id}:cancel"), ("PUT", f"/v1/jobs/{job_id}"), ("PATCH", "/v1/jobs")):
+        wrong = api_a.request(method, path)
+        assert wrong.status_code == 405 and wrong.headers["allow"] == expected[path], (method, path)
+        assert wrong.json()["error"]["code"] == "method_not_allowed"
+
+
+def test_head_answers_as_get_without_the_body(stack, done_job: dict, api_a: httpx.Client) -> None:  # noqa: ANN001
+    for path in (f"/v1/jobs/{done_job['id']}", f"/v1/jobs/{done_job['id']}/result", "/healthz"):
+        got, head = api_a.get(path), api_a.head(path)
+        assert (head.status_code, head.content) == (got.status_code, b""), path
+        assert head.headers["content-type"] == got.headers["content-type"], path
+    assert api_a.head(f"/v1/jobs/{'0' * 32}").status_code == 404
+    assert httpx.head(f"{stack.api_url}/v1/jobs").status_code == 401  # the GET's key check holds for HEAD
 
 
 def test_a_reused_idempotency_key_with_another_request_is_refused(api_a: httpx.Client, small_ply: bytes) -> None:
