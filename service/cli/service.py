@@ -6,6 +6,8 @@ import argparse
 import json
 import os
 import tempfile
+from collections import defaultdict
+from itertools import combinations
 from pathlib import Path
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -33,7 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--images", type=Path, help="dataset folder (NeRF-Synthetic or COLMAP) of the one scene")
     p.add_argument("--params", help="job parameters as JSON, or @file.json")
     p.add_argument("--no-wait", action="store_true", help="print the job ids and return")
-    p.add_argument("-o", "--output", type=Path, help="download each finished job's results into OUTPUT/<scene>/")
+    p.add_argument(
+        "-o", "--output", type=Path,
+        help="download each finished job's results into OUTPUT/<scene>/, <scene> being the file name without its "
+        "suffix; scenes that share it keep the path that tells them apart (a/scene.ply b/scene.ply: OUTPUT/a/scene/ "
+        "and OUTPUT/b/scene/)",
+    )  # fmt: skip
     client_options(p)
     p.set_defaults(func=submit)
 
@@ -126,6 +133,47 @@ def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI erro
     return wrapped
 
 
+def _labels(scenes: list[Path]) -> list[str]:
+    """Each scene's name on its progress bar and, without its suffix, its results folder: the file name, or where
+    scenes share a stem (every 3DGS training run writes point_cloud.ply), the path from the folder holding them all."""
+    paths = [Path(os.path.abspath(scene)) for scene in scenes]
+    by_stem: defaultdict[str, list[Path]] = defaultdict(list)
+    for path in paths:
+        by_stem[path.stem.casefold()].append(path)  # casefolded: Scene/ and scene/ are one folder on some disks
+    labels = []
+    for path in paths:
+        same = by_stem[path.stem.casefold()]
+        top = Path(os.path.commonpath([other.parent for other in same])) if len(same) > 1 else path.parent
+        labels.append(path.relative_to(top).as_posix())
+    return labels
+
+
+def _result_folders(scenes: list[Path], labels: list[str], output: Path) -> list[Path]:
+    """Each scene's folder under ``output``; refused where two would mix (a scene given twice, scene.ply beside
+    scene.PLY, or one folder inside another), before anything is submitted."""
+    from .parser import CliError
+
+    folders = [Path(label).with_suffix("") for label in labels]
+    keys = [tuple(part.casefold() for part in folder.parts) for folder in folders]
+    for i, j in combinations(range(len(scenes)), 2):
+        outer, inner = sorted((i, j), key=lambda k: len(keys[k]))
+        if keys[inner][: len(keys[outer])] == keys[outer]:
+            raise CliError(
+                f"-o: {scenes[i]} and {scenes[j]} would mix their results in {output / folders[outer]}; submit them "
+                "with separate -o folders"
+            )
+    return [output / folder for folder in folders]
+
+
+def _download(client, job_id: str, folder: Path) -> list[Path]:  # noqa: ANN001 - SymgsClient, imported lazily
+    from .parser import CliError
+
+    try:
+        return client.fetch(job_id, folder)
+    except OSError as exc:  # a full disk, a folder that cannot be made: named, not a traceback
+        raise CliError(f"-o {folder}: cannot write {exc.filename or folder}: {exc.strerror or exc}") from None
+
+
 @_api_errors
 def submit(args: argparse.Namespace) -> int:
     from rich.console import Console
@@ -136,20 +184,27 @@ def submit(args: argparse.Namespace) -> int:
 
     if args.images is not None and len(args.scenes) != 1:
         raise CliError("--images belongs to one scene; submit scenes with datasets one at a time")
+    if args.images is not None and not args.images.is_dir():
+        raise CliError(f"--images {args.images} is not a folder")
     for scene in args.scenes:
         if not scene.is_file():
             raise CliError(f"{scene} is not a file")
     check_output("-o", args.output, folder=True)
+    labels = _labels(args.scenes)
+    folders = _result_folders(args.scenes, labels, args.output) if args.output is not None else []
     params = _params(args.params)
     console = Console()
     with _client(args) as client, tempfile.TemporaryDirectory() as tmp:
         archive = None
         if args.images is not None:
-            archive = zip_folder(args.images, Path(tmp) / f"{args.images.name}.zip")
+            try:
+                archive = zip_folder(args.images, Path(tmp) / f"{args.images.name}.zip")
+            except (OSError, ValueError) as exc:  # an unreadable photograph, a date zip cannot store
+                raise CliError(f"--images {args.images}: {exc}") from None
         jobs = {}
-        for scene in args.scenes:
+        for scene, label in zip(args.scenes, labels, strict=True):
             job = client.submit(scene, images=archive, params=params)
-            jobs[job.id] = scene.name
+            jobs[job.id] = label
             console.print(f"{scene}: job {job.id} ({job.queue} queue)")
         if args.no_wait:
             return 0
@@ -159,9 +214,9 @@ def submit(args: argparse.Namespace) -> int:
             if job.error is not None:  # in full: the table cuts long messages
                 console.print(f"{jobs[job_id]}: {job.state}: {job.error.code}: {job.error.message}", soft_wrap=True)
         if args.output is not None:
-            for job_id, label in jobs.items():
+            for job_id, folder in zip(jobs, folders, strict=True):
                 if finals[job_id].state == "succeeded":
-                    client.fetch(job_id, args.output / Path(label).stem)
+                    _download(client, job_id, folder)
             console.print(f"results in {args.output}/")
     return 0 if all(job.state == "succeeded" for job in finals.values()) else 1
 
@@ -196,7 +251,7 @@ def fetch(args: argparse.Namespace) -> int:
         if job.state != "succeeded":
             why = f" ({job.error.code}: {job.error.message})" if job.error is not None else ""
             raise CliError(f"job {job.id} is {job.state}{why}; only succeeded jobs have results")
-        for path in client.fetch(args.job_id, args.output):
+        for path in _download(client, args.job_id, args.output):
             print(path)
     return 0
 

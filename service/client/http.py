@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -16,14 +17,20 @@ from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
 
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
 _DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
+# How long wait() keeps trying while the API is out of reach or answers 503 (its Redis restarting, a redeploy):
+# long enough to ride out a restart, short enough that a server gone for good is reported.
+PATIENCE_S = 120.0
+# Pauses between those tries where the API names none (Retry-After): doubling from the first up to the last.
+_FIRST_PAUSE_S, _LAST_PAUSE_S = 0.5, 5.0
 
 
 class ApiClientError(Exception):
-    """An error answer of the API: HTTP status, machine-readable code and message."""
+    """An error answer of the API: HTTP status, machine-readable code and message, and the seconds it asked the
+    client to wait before trying again (its Retry-After), if it said."""
 
-    def __init__(self, status: int, code: str, message: str) -> None:
+    def __init__(self, status: int, code: str, message: str, retry_after: float | None = None) -> None:
         super().__init__(f"{status} {code}: {message}")
-        self.status, self.code, self.message = status, code, message
+        self.status, self.code, self.message, self.retry_after = status, code, message, retry_after
 
 
 @dataclass(frozen=True)
@@ -40,25 +47,78 @@ def _raise_for(response: httpx.Response) -> None:
         code, message = error["code"], error["message"]
     except (ValueError, KeyError, TypeError):
         code, message = "http_error", response.text[:200]
-    raise ApiClientError(response.status_code, code, message)
+    raise ApiClientError(response.status_code, code, message, _retry_after(response))
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    try:
+        return max(0.0, float(response.headers["Retry-After"]))
+    except (KeyError, ValueError):  # absent, or an HTTP date: the client's own pauses will do
+        return None
+
+
+class _Patience:
+    """The retries of one wait(): the pause before the next try, and whether to try again at all."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self.reset()
+
+    def reset(self) -> None:
+        """The API answered: the next outage gets the whole patience again."""
+        self.failing_since: float | None = None
+        self.backoff = _FIRST_PAUSE_S
+
+    def pause_before_retry(self, retry_after: float | None) -> bool:
+        """Sleep before the next try (the API's Retry-After where it sent one); False once patience has run out."""
+        now = time.monotonic()
+        if self.failing_since is None:
+            self.failing_since = now
+        left = self.failing_since + self.seconds - now
+        if left <= 0:
+            return False
+        time.sleep(min(retry_after if retry_after is not None else self.backoff, left))
+        self.backoff = min(2 * self.backoff, _LAST_PAUSE_S)
+        return True
+
+
+def _files(folder: Path) -> Iterator[Path]:
+    """The regular files under ``folder``, through symbolic links (a dataset's photographs are often linked in from
+    elsewhere), but never into a folder that holds the link: its files are listed already."""
+
+    def walk(directory: Path, ancestors: frozenset[tuple[int, int]]) -> Iterator[Path]:
+        stat = directory.stat()
+        here = (stat.st_dev, stat.st_ino)
+        if here in ancestors:
+            return
+        for path in directory.iterdir():
+            if path.is_dir():
+                yield from walk(path, ancestors | {here})
+            elif path.is_file():
+                yield path
+
+    return walk(folder, frozenset())
 
 
 def zip_folder(folder: str | os.PathLike[str], dest: str | os.PathLike[str]) -> Path:
-    """Zip a dataset folder (the archive holds the folder itself, by name) for the ``images`` upload."""
+    """Zip a dataset folder (the archive holds the folder itself, by name) for the ``images`` upload; files and folders
+    that are symbolic links are stored as what they point to, under the link's name."""
     folder, dest = Path(folder), Path(dest)
     if not folder.is_dir():
         raise ValueError(f"{folder} is not a folder")
     with zipfile.ZipFile(dest, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
-        for path in sorted(folder.rglob("*")):
-            if path.is_file() and not path.is_symlink():
-                zf.write(path, (Path(folder.name) / path.relative_to(folder)).as_posix())
+        for path in sorted(_files(folder)):
+            zf.write(path, (Path(folder.name) / path.relative_to(folder)).as_posix())
     return dest
 
 
 class SymgsClient:
-    def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 300.0) -> None:
+    def __init__(
+        self, base_url: str, api_key: str | None = None, *, timeout: float = 300.0, patience: float = PATIENCE_S
+    ) -> None:
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
+        self.patience = patience
 
     def close(self) -> None:
         self.http.close()
@@ -130,17 +190,29 @@ class SymgsClient:
                     fields[name] = value[1:] if value.startswith(" ") else value
 
     def wait(self, job_id: str, on_event: Callable[[JobEvent], None] | None = None) -> Job:
-        """Follow the job's events until it finishes (reconnecting after where it left off); the final job."""
+        """Follow the job's events until it finishes (reconnecting after where it left off); the final job.
+
+        A dropped connection, an API out of reach or one answering 503 is tried again, after the API's Retry-After
+        where it sends one, until ``patience`` seconds pass without an answer; then the last error is raised."""
         last: str | None = None
+        patience = _Patience(self.patience)
         while True:
             try:
                 for item in self.events(job_id, last_event_id=last):
+                    patience.reset()
                     last = item.id
                     if on_event is not None:
                         on_event(item.event)
+                job = self.job(job_id)
             except httpx.TransportError:
-                continue  # the connection dropped: resume after the last event seen
-            job = self.job(job_id)
+                if patience.pause_before_retry(None):
+                    continue  # resume after the last event seen
+                raise
+            except ApiClientError as exc:
+                if exc.status == 503 and patience.pause_before_retry(exc.retry_after):
+                    continue
+                raise
+            patience.reset()
             if job.state in TERMINAL_STATES:
                 return job
 

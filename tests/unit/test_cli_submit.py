@@ -1,0 +1,86 @@
+"""`symgs submit` and `symgs fetch` against a scripted API: each scene's results in a folder of its own, a 503 ridden
+out, and local mistakes (a dataset folder that is not one, downloads that cannot be written) as one line and exit 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.cli import main
+from tests.unit._fake_api import FakeApi, events, job, serving, unavailable
+
+A, B = "a" * 32, "b" * 32
+NOWHERE = "http://127.0.0.1:9"  # for commands refused before they ask the API anything
+
+
+def _scene(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"ply\n")  # the scripted API does not read it
+    return path
+
+
+def _one_error_line(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith(f"symgs {command}: error: "), err
+    return err
+
+
+def _finished(job_id: str, result: bytes) -> dict:
+    return {
+        f"GET /v1/jobs/{job_id}/events": [events(("1", "succeeded"))],
+        f"GET /v1/jobs/{job_id}": [job(job_id, "succeeded", ("result.symgs",))],
+        f"GET /v1/jobs/{job_id}/result": [(200, {}, result)],
+    }
+
+
+def test_scenes_sharing_a_name_download_into_folders_of_their_own(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    first, second = _scene(tmp_path / "a" / "scene.ply"), _scene(tmp_path / "b" / "scene.ply")
+    api = FakeApi({
+        "POST /v1/jobs": [job(A, "queued"), job(B, "queued")],
+        **_finished(A, b"first"), **_finished(B, b"second"),
+        # the API's Redis restarts while the first job is followed: the command waits, as Retry-After asks
+        f"GET /v1/jobs/{A}/events": [unavailable("0"), events(("1", "succeeded"))],
+    })  # fmt: skip
+    out = tmp_path / "out"
+    with serving(api) as url:
+        assert main(["submit", str(first), str(second), "-o", str(out), "--server", url]) == 0, capsys.readouterr()
+    written = {p.relative_to(out).as_posix(): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert written == {"a/scene/result.symgs": b"first", "b/scene/result.symgs": b"second"}
+    assert len(api.asked(f"GET /v1/jobs/{A}/events")) == 2
+    assert "a/scene.ply" in capsys.readouterr().out  # the bars and the table say which is which
+
+
+def test_a_lone_scene_keeps_its_folder_name(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    scene = _scene(tmp_path / "deep" / "chair.ply")
+    api = FakeApi({"POST /v1/jobs": [job(A, "queued")], **_finished(A, b"chair")})
+    with serving(api) as url:
+        assert main(["submit", str(scene), "-o", str(tmp_path / "out"), "--server", url]) == 0, capsys.readouterr()
+    assert (tmp_path / "out" / "chair" / "result.symgs").read_bytes() == b"chair"
+
+
+@pytest.mark.parametrize(
+    "names", [("x/scene.ply", "x/scene.ply"), ("x/scene.ply", "x/scene.PLY"), ("x.ply", "x/s.ply", "y/s.ply")]
+)
+def test_scenes_whose_results_would_mix_are_refused_before_any_upload(tmp_path: Path, capsys, names) -> None:  # noqa: ANN001
+    scenes = [str(_scene(tmp_path / name)) for name in names]
+    assert main(["submit", *scenes, "-o", str(tmp_path / "out"), "--server", NOWHERE]) == 2
+    assert "would mix their results" in _one_error_line(capsys, "submit")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("images", ["missing", "scene.ply"])
+def test_images_that_are_not_a_folder_give_one_line(tmp_path: Path, capsys, images: str) -> None:  # noqa: ANN001
+    scene = _scene(tmp_path / "scene.ply")
+    assert main(["submit", str(scene), "--images", str(tmp_path / images), "--server", NOWHERE]) == 2
+    assert f"--images {tmp_path / images} is not a folder" in _one_error_line(capsys, "submit")
+
+
+def test_downloads_that_cannot_be_written_give_one_line(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "result.symgs").symlink_to("/dev/full")  # a full disk
+    api = FakeApi(_finished(A, b"x" * 4096))
+    with serving(api) as url:
+        assert main(["fetch", A, "-o", str(out), "--server", url]) == 2
+    assert "cannot write" in (err := _one_error_line(capsys, "fetch")) and "No space left on device" in err, err
