@@ -60,6 +60,8 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     never members. Indices come back on the scene's device; the passes over Gaussians and pairs (cluster keys, pair
     sampling, voting, KD-tree matching) run on the CPU, compiled.
     """
+    if not isinstance(scene, GaussianScene):
+        raise TypeError(f"detect takes a GaussianScene (load_scene reads one from a file), got {type(scene).__name__}")
     config = config or DetectConfig()
     known = list(exclude)
     parts = (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats)

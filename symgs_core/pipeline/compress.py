@@ -110,6 +110,8 @@ def compress(
     every level decision is saved there and a rerun with the same inputs resumes after it.
     """
     config = config or CompressConfig.for_preset()
+    if not isinstance(config, CompressConfig):
+        raise TypeError(f"config must be a CompressConfig, e.g. CompressConfig.for_preset('small'), got {config!r}")
     report = _Reporter(progress, should_stop)
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
@@ -239,9 +241,9 @@ def compress(
     return CompressResult(archive=archive, report=result, images=images_out)
 
 
-def decompress(archive: bytes | str | Path) -> GaussianScene:
-    """The decoded scene of a ``.symgs`` archive (bytes or a path)."""
-    data = archive if isinstance(archive, bytes | bytearray) else Path(archive).read_bytes()
+def decompress(archive: bytes | bytearray | memoryview | str | Path) -> GaussianScene:
+    """The decoded scene of a ``.symgs`` archive (its bytes or a path)."""
+    data = archive if isinstance(archive, bytes | bytearray | memoryview) else Path(archive).read_bytes()
     return expand_archive(decode_archive(bytes(data)))
 
 

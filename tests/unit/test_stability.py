@@ -204,3 +204,20 @@ def test_an_empty_scene_is_refused_with_a_clear_error():
     with pytest.raises(ValueError, match="no Gaussians") as caught:
         compress(GaussianScene.empty(0), config=CONFIG)
     assert caught.value.code == "empty_scene"  # the code the API answers an empty upload with
+
+
+def test_the_python_doors_name_what_they_take(tmp_path):  # noqa: ANN001
+    """A preset's name where a config belongs, a path where detection wants a scene: a TypeError that says what to
+    pass, not an AttributeError from deep inside; an archive's bytes are taken in any bytes-like form."""
+    from symgs_core import decompress, detect
+    from symgs_core.ply import save_scene
+
+    scene = synthetic_scene("global", n=300, seed=1).scene
+    path = tmp_path / "s.ply"
+    save_scene(scene, path)
+    with pytest.raises(TypeError, match=r"CompressConfig.for_preset\('small'\)"):
+        compress(path, config="fast")
+    with pytest.raises(TypeError, match="load_scene"):
+        detect(str(path))
+    archive = compress(scene, config=replace(CONFIG, use_mirrors=False)).archive
+    assert len(decompress(memoryview(archive))) == len(decompress(archive)) == len(decompress(bytearray(archive)))
