@@ -10,7 +10,7 @@ import httpx
 import pytest
 
 from service.client import ApiClientError, SymgsClient
-from tests.unit._fake_api import FakeApi, events, job, serving, unavailable
+from tests.unit._scripted_api import FakeApi, events, job, serving, unavailable
 
 JOB = "5" * 32
 

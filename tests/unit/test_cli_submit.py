@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.cli import main
-from tests.unit._fake_api import FakeApi, events, job, serving, unavailable
+from tests.unit._scripted_api import FakeApi, events, job, serving, unavailable
 
 A, B = "a" * 32, "b" * 32
 NOWHERE = "http://127.0.0.1:9"  # for commands refused before they ask the API anything
