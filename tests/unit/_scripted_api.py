@@ -46,7 +46,7 @@ def events(*items: tuple[str, str]) -> Answer:
     return 200, {"Content-Type": "text/event-stream"}, text.encode()
 
 
-class FakeApi:
+class ScriptedApi:
     def __init__(self, script: dict[str, list[Answer]]) -> None:
         """``script``: "METHOD /path" -> its answers in turn, the last one repeated; anything else is 404."""
         self.script = script
@@ -67,7 +67,7 @@ class FakeApi:
 
 
 @contextmanager
-def serving(api: FakeApi) -> Iterator[str]:
+def serving(api: ScriptedApi) -> Iterator[str]:
     """Serve ``api`` on a free local port for the block; yields its base URL."""
 
     class Handler(BaseHTTPRequestHandler):

@@ -10,13 +10,13 @@ import httpx
 import pytest
 
 from service.client import ApiClientError, SymgsClient
-from tests.unit._scripted_api import FakeApi, events, job, serving, unavailable
+from tests.unit._scripted_api import ScriptedApi, events, job, serving, unavailable
 
 JOB = "5" * 32
 
 
 def test_wait_retries_503_on_the_stream_and_the_poll_then_reports_the_final_job() -> None:
-    api = FakeApi({
+    api = ScriptedApi({
         f"GET /v1/jobs/{JOB}/events": [unavailable("1"), events(("1", "running")), events(("2", "succeeded"))],
         f"GET /v1/jobs/{JOB}": [unavailable("0"), job(JOB, "succeeded", ("result.symgs",))],
     })  # fmt: skip
@@ -33,7 +33,7 @@ def test_wait_retries_503_on_the_stream_and_the_poll_then_reports_the_final_job(
 
 
 def test_wait_gives_up_on_503_once_its_patience_is_spent() -> None:
-    api = FakeApi({f"GET /v1/jobs/{JOB}/events": [unavailable("5")]})
+    api = ScriptedApi({f"GET /v1/jobs/{JOB}/events": [unavailable("5")]})
     with serving(api) as url, SymgsClient(url, patience=0.3) as client:
         start = time.monotonic()
         with pytest.raises(ApiClientError) as raised:
@@ -44,7 +44,7 @@ def test_wait_gives_up_on_503_once_its_patience_is_spent() -> None:
 
 
 def test_wait_does_not_retry_other_errors() -> None:
-    api = FakeApi({})
+    api = ScriptedApi({})
     with serving(api) as url, SymgsClient(url) as client, pytest.raises(ApiClientError) as raised:
         client.wait(JOB)
     assert raised.value.status == 404 and len(api.requests) == 1

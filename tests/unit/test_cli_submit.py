@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.cli import main
-from tests.unit._scripted_api import FakeApi, events, job, serving, unavailable
+from tests.unit._scripted_api import ScriptedApi, events, job, serving, unavailable
 
 A, B = "a" * 32, "b" * 32
 NOWHERE = "http://127.0.0.1:9"  # for commands refused before they ask the API anything
@@ -36,7 +36,7 @@ def _finished(job_id: str, result: bytes) -> dict:
 
 def test_scenes_sharing_a_name_download_into_folders_of_their_own(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     first, second = _scene(tmp_path / "a" / "scene.ply"), _scene(tmp_path / "b" / "scene.ply")
-    api = FakeApi({
+    api = ScriptedApi({
         "POST /v1/jobs": [job(A, "queued"), job(B, "queued")],
         **_finished(A, b"first"), **_finished(B, b"second"),
         # the API's Redis restarts while the first job is followed: the command waits, as Retry-After asks
@@ -53,7 +53,7 @@ def test_scenes_sharing_a_name_download_into_folders_of_their_own(tmp_path: Path
 
 def test_a_lone_scene_keeps_its_folder_name(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     scene = _scene(tmp_path / "deep" / "chair.ply")
-    api = FakeApi({"POST /v1/jobs": [job(A, "queued")], **_finished(A, b"chair")})
+    api = ScriptedApi({"POST /v1/jobs": [job(A, "queued")], **_finished(A, b"chair")})
     with serving(api) as url:
         assert main(["submit", str(scene), "-o", str(tmp_path / "out"), "--server", url]) == 0, capsys.readouterr()
     assert (tmp_path / "out" / "chair" / "result.symgs").read_bytes() == b"chair"
@@ -80,7 +80,7 @@ def test_downloads_that_cannot_be_written_give_one_line(tmp_path: Path, capsys) 
     out = tmp_path / "out"
     out.mkdir()
     (out / "result.symgs").symlink_to("/dev/full")  # a full disk
-    api = FakeApi(_finished(A, b"x" * 4096))
+    api = ScriptedApi(_finished(A, b"x" * 4096))
     with serving(api) as url:
         assert main(["fetch", A, "-o", str(out), "--server", url]) == 2
     assert "cannot write" in (err := _one_error_line(capsys, "fetch")) and "No space left on device" in err, err
