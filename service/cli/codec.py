@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
-from .parser import CliError, check_distinct, check_output, check_seed, error_text, write_output
+from .parser import CliError, check_distinct, check_input, check_output, check_seed, error_text, write_output
 
 HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
 
@@ -78,10 +78,9 @@ def _compress(args: argparse.Namespace) -> int:
 
     from .local_progress import LocalProgress
 
-    if not args.scene.is_file():
-        raise CliError(f"scene file not found: {args.scene}")
-    if args.images is not None and not args.images.is_dir():
-        raise CliError(f"images folder not found: {args.images}")
+    check_input("scene file", args.scene)
+    if args.images is not None:
+        check_input("images folder", args.images, folder=True)
     check_output("-o", args.output)
     check_output("--report", args.report)
     check_output("--pictures", args.pictures, folder=True)
@@ -115,8 +114,7 @@ def _decompress(args: argparse.Namespace) -> int:
     from symgs_core.codec import decode_archive, expand_archive
     from symgs_core.export.formats import by_path
 
-    if not args.archive.is_file():
-        raise CliError(f"archive not found: {args.archive}")
+    check_input("archive", args.archive)
     try:
         fmt = by_path(args.output)
     except ValueError as exc:
@@ -168,9 +166,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from symgs_core.ply import load_scene
     from symgs_core.views import evaluate, self_supervised_views
 
-    for path in (args.reference, args.candidate):
-        if not path.is_file():
-            raise CliError(f"file not found: {path}")
+    check_input("reference", args.reference)
+    check_input("candidate", args.candidate)
     check_seed("--seed", args.seed)
     try:  # the bounds of compress's evaluation cameras
         CompressConfig(eval_views=args.views, eval_resolution=args.resolution)

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .parser import CliError, error_text
+from .parser import CliError, check_input, error_text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -46,8 +46,7 @@ def run_detect(args: argparse.Namespace) -> int:
         config = DetectConfig(**overrides)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    if not args.scene.is_file():
-        raise CliError(f"scene file {args.scene} does not exist")
+    check_input("scene file", args.scene)
     t0 = time.perf_counter()
     try:
         scene = load_scene(args.scene)

@@ -42,6 +42,14 @@ def check_seed(option: str, seed: int | None) -> None:
         raise CliError(f"{option} must be in 0..{SEED_MAX}, got {seed}")
 
 
+def check_input(what: str, path: Path, *, folder: bool = False) -> None:
+    """Refuse an input that is missing, or a folder where a file belongs (and the reverse), naming which."""
+    if not path.exists():
+        raise CliError(f"{what} {path} does not exist")
+    if path.is_dir() != folder:
+        raise CliError(f"{what} {path} is a {'file' if folder else 'folder'}, not a {'folder' if folder else 'file'}")
+
+
 def check_output(option: str, path: Path | None, *, folder: bool = False) -> None:
     """Refuse an output that could not be written, before the work rather than after it (None: not asked for)."""
     if path is None:

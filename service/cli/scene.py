@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .parser import CliError, check_output, error_text
+from .parser import CliError, check_input, check_output, error_text
 
 DEFAULT_ORBIT_SIZE = 512
 DEFAULT_ORBIT_VIEWS = 8
@@ -56,8 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _read(path: Path) -> tuple[Any, Any]:
     from symgs_core.ply import PlyError, read_scene
 
-    if not path.is_file():
-        raise CliError(f"scene file {path} does not exist")
+    check_input("scene file", path)
     try:
         return read_scene(path)
     except PlyError as exc:

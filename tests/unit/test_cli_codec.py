@@ -212,3 +212,23 @@ def test_the_command_exits_2_without_a_traceback_on_an_output_folder(scene_file,
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert done.stderr == f"symgs compress: error: -o {tmp_path} is a folder; a file is expected there\n"
     assert time.monotonic() - start < 30  # the compression (minutes at the default preset) never ran
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["info", "adir"], "scene file adir is a folder, not a file"),
+        (["detect", "adir"], "scene file adir is a folder, not a file"),
+        (["compress", "adir", "-o", "x.symgs"], "scene file adir is a folder, not a file"),
+        (["compress", "SCENE", "-o", "x.symgs", "--images", "SCENE"], "is a file, not a folder"),
+        (["decompress", "adir", "-o", "x.ply"], "archive adir is a folder, not a file"),
+        (["evaluate", "SCENE", "adir"], "candidate adir is a folder, not a file"),
+        (["evaluate", "nowhere.ply", "SCENE"], "reference nowhere.ply does not exist"),
+    ],
+)
+def test_an_input_of_the_wrong_kind_is_named(scene_file, tmp_path, capsys, monkeypatch, argv, message):  # noqa: ANN001
+    (tmp_path / "adir").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert main([str(scene_file) if a == "SCENE" else a for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"symgs {argv[0]}: error: ") and message in err and len(err.splitlines()) == 1, err
