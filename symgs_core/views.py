@@ -256,6 +256,9 @@ def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:
     if math.isnan(flat):
         raise DatasetError("images_mismatch", "the upload draws nothing in the photographs' views: they do not show "
                            f"this scene, or {frame}")  # fmt: skip
+    if math.isinf(flat):  # a flat colour matches them exactly: nothing of a scene is in them
+        raise DatasetError("images_mismatch", "where the upload is drawn, the photographs show one flat colour: they "
+                           f"do not show this scene, or {frame}")  # fmt: skip
     if not fitting.psnr_object >= flat + MATCH_MARGIN_DB:
         raise DatasetError(
             "images_mismatch",

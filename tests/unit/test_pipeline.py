@@ -403,6 +403,22 @@ def test_photographs_that_do_not_show_the_upload_are_refused_before_any_work(tmp
     assert compress(shown, images=tmp_path, config=config).report.cameras.fitting.source == "photographs"
 
 
+def test_photographs_of_one_flat_colour_are_refused_as_such():
+    """Where the upload is drawn they hold a single colour (a blank set, or pictures read wrongly): no flat colour
+    can be beaten there, and the message says what they show rather than an infinite PSNR."""
+    from types import SimpleNamespace
+
+    from symgs_core.datasets import DatasetError
+    from symgs_core.views import check_photographs
+
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[2:6, 2:6] = True
+    views = [(None, torch.full((8, 8, 3), 0.5), mask)] * 2
+    with pytest.raises(DatasetError, match="one flat colour") as refused:
+        check_photographs(SimpleNamespace(psnr_object=60.0), views)
+    assert refused.value.code == "images_mismatch" and "inf" not in str(refused.value)
+
+
 @pytest.mark.parametrize(
     ("attribute", "index", "value", "code", "named"),
     [
