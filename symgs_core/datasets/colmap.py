@@ -181,12 +181,21 @@ def read_colmap_cameras_text(path: Path) -> dict[int, ColmapCamera]:
     return cameras
 
 
+def _is_numbers(line: str) -> bool:
+    try:
+        [float(word) for word in line.split()]
+    except ValueError:
+        return False
+    return True
+
+
 def read_colmap_images_text(path: Path) -> dict[int, ColmapImage]:
-    # Two lines per image: the pose line, then its 2D points (possibly empty).
-    lines = _text_lines(path)
+    # COLMAP writes two lines per image, the pose and then its 2D points (possibly empty), but converters and hand
+    # edits drop the empty ones or add blank lines: a line is told by what it holds, not by where it falls. A points
+    # line is numbers only; a pose line ends with the image's name.
     images = {}
-    for number, line in lines[0::2]:
-        if not line.strip():
+    for number, line in _text_lines(path):
+        if not line.strip() or _is_numbers(line):
             continue
         words = line.split(maxsplit=9)
         try:

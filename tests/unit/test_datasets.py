@@ -307,6 +307,25 @@ def test_colmap_text_cameras_and_llff_split(tmp_path: Path) -> None:
     np.testing.assert_array_equal(views[1].image.numpy(), jpeg)
 
 
+@pytest.mark.parametrize("layout", ["no points lines", "blank lines between", "a blank line after the comments"])
+def test_colmap_text_images_are_told_by_content_not_line_pairs(tmp_path: Path, layout: str) -> None:
+    """Converters and hand edits leave out the empty points lines or add blank ones; every image is still read,
+    none taken for another's points."""
+    make_colmap(tmp_path, count=7)
+    images = tmp_path / "sparse" / "0" / "images.txt"
+    expected = colmap_frames(tmp_path)
+    lines = images.read_text().splitlines()
+    comments, data = lines[:2], lines[2:]
+    poses = data[0::2]
+    edited = {"no points lines": poses, "blank lines between": [x for pose in poses for x in (pose, "", "")],
+              "a blank line after the comments": ["", *data]}[layout]  # fmt: skip
+    images.write_text("\n".join([*comments, *edited]) + "\n")
+    frames = colmap_frames(tmp_path)
+    assert [f.name for f in frames] == [f.name for f in expected] and len(frames) == 7
+    for a, b in zip(frames, expected, strict=True):
+        assert_same_pose(a.camera, b.camera, atol=0)
+
+
 def test_colmap_binary_equals_text(tmp_path: Path) -> None:
     make_colmap(tmp_path, count=9)
     text = colmap_frames(tmp_path)
