@@ -6,7 +6,8 @@ and special files are refused, entries counted, declared sizes summed against th
 found by name. While extracting, the bytes actually written are counted against the same cap (a zip entry whose
 data inflates past its declared size is cut there and fails its CRC). The cap is the smaller of the configured
 limit and ``MAX_RATIO`` times the archive's own size: images, most of any dataset, barely compress, so a bomb is
-refused from its directory having written nothing.
+refused from its directory having written nothing. What tarfile reads whole before a member reaches those checks (a
+long name, a pax record, a sparse map) is capped at ``TAR_HEADERS_MAX`` bytes a member.
 """
 
 from __future__ import annotations
@@ -28,6 +29,10 @@ MAX_RATIO = 50  # extracted bytes per archive byte; PNG and JPEG images inflate 
 RATIO_FLOOR = 8 << 20  # a small archive may extract to this much whatever its ratio
 SPLITS = ("train", "val", "test")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+# What tarfile may read to learn one member: its header, and the long names, long links, pax records and sparse maps
+# before it; a real one holds a path or a few keys. A few keys, too, in the pax records that apply to every member.
+TAR_HEADERS_MAX = 64 << 10
+TAR_GLOBAL_KEYS = 64
 Layout = Literal["nerf_synthetic", "colmap"]
 _DRIVE = re.compile(r"^[A-Za-z]:")
 
@@ -132,6 +137,42 @@ def _zip_entries(zf: zipfile.ZipFile, budget: _Budget) -> list[Entry]:
     return entries
 
 
+class _HeaderReads:
+    """The tar stream while tarfile reads one member's headers: a read past ``TAR_HEADERS_MAX`` bytes is refused
+    before it is made. tarfile reads a long name, a long link, a pax record or a sparse map whole, the size the header
+    declares, before the member they belong to reaches the budget."""
+
+    def __init__(self, stream: tarfile._Fileobj) -> None:
+        self.stream, self.left = stream, TAR_HEADERS_MAX
+
+    def read(self, size: int, /) -> bytes:
+        if size > self.left:
+            raise _invalid("bad_archive", f"images: a tar member's headers (long names, pax records, sparse maps) "
+                           f"exceed {TAR_HEADERS_MAX} bytes")  # fmt: skip
+        self.left -= size
+        return self.stream.read(size)
+
+    def tell(self) -> int:
+        return self.stream.tell()
+
+
+class _TarMember(tarfile.TarInfo):
+    """A tar member whose headers are read through ``_HeaderReads``."""
+
+    def _proc_member(self, archive: tarfile.TarFile) -> tarfile.TarInfo:  # tarfile's hook for TarInfo subclasses
+        stream = archive.fileobj
+        if isinstance(stream, _HeaderReads):  # the header after a long name or pax record: the same cap holds both
+            return super()._proc_member(archive)  # type: ignore[misc]
+        archive.fileobj = _HeaderReads(stream)  # type: ignore[assignment]
+        try:
+            member: tarfile.TarInfo = super()._proc_member(archive)  # type: ignore[misc]
+        finally:
+            archive.fileobj = stream
+        if len(archive.pax_headers) > TAR_GLOBAL_KEYS:  # they pile up, member after member
+            raise _invalid("bad_archive", f"images: the tar's global pax records hold more than {TAR_GLOBAL_KEYS} keys")
+        return member
+
+
 def _tar_entries(tf: tarfile.TarFile, budget: _Budget) -> Iterator[tuple[Entry, tarfile.TarInfo]]:
     # Stream mode reads members in order, without seeking or building the member list first; member sizes in tar
     # headers are exact, so the budget stops a bomb at the header that would pass the cap.
@@ -167,12 +208,7 @@ class _Opened:
         with open(self.archive, "rb") as f:
             magic = f.read(4)
         try:
-            if magic[:2] == b"PK":
-                self.handle = zipfile.ZipFile(self.archive)
-            elif tarfile.is_tarfile(self.archive):
-                self.handle = tarfile.open(self.archive, mode="r|*")
-            else:
-                raise _invalid("bad_archive", "images: not a zip or tar archive")
+            self.handle = zipfile.ZipFile(self.archive) if magic[:2] == b"PK" else _open_tar(self.archive)
         except BaseException as exc:
             self.__exit__(type(exc), exc, None)
             raise
@@ -185,6 +221,14 @@ class _Opened:
             raise _invalid("bad_archive", f"images: the archive is damaged ({exc})") from None
         if isinstance(exc, OSError):  # a gzip/xz stream that is not one, or a file where a folder goes
             raise _invalid("bad_archive", f"images: cannot extract the archive ({exc.strerror or exc})") from None
+
+
+def _open_tar(archive: Path) -> tarfile.TarFile:
+    # Not tarfile.is_tarfile first: it reads the first member with the plain TarInfo, long name and all.
+    try:
+        return tarfile.open(archive, mode="r|*", tarinfo=_TarMember)
+    except tarfile.ReadError:
+        raise _invalid("bad_archive", "images: not a zip or tar archive") from None
 
 
 class _Writer:

@@ -7,6 +7,7 @@ import json
 import os
 import struct
 import tarfile
+import tracemalloc
 import zipfile
 from pathlib import Path
 
@@ -207,6 +208,103 @@ def test_tar_bomb_and_traversal(tmp_path: Path) -> None:
         _tar_add(tf, "../../sneaky.txt", b"x")
     assert _error(lambda: extract(sneaky, tmp_path / "out2", LIMITS)).code == "unsafe_entry"
     assert not (tmp_path / "sneaky.txt").exists() and not Path(os.path.dirname(tmp_path), "sneaky.txt").exists()
+
+
+class _Zeros(io.RawIOBase):
+    """``size`` zero bytes, read without holding them all."""
+
+    def __init__(self, size: int) -> None:
+        self.left = size
+
+    def readinto(self, buffer) -> int:  # noqa: ANN001
+        n = min(len(buffer), self.left)
+        buffer[:n] = bytes(n)
+        self.left -= n
+        return n
+
+
+def _tar_record(tf: tarfile.TarFile, kind: bytes, data: io.RawIOBase | io.BytesIO, size: int) -> None:
+    """A record of type ``kind`` (long name, long link, pax) as tarfile writes a member: header, then data."""
+    info = tarfile.TarInfo("././@LongLink")
+    info.type, info.size = kind, size
+    tf.addfile(info, data)
+
+
+def _pax(key: str, value: str) -> bytes:
+    body = f" {key}={value}\n"
+    length = len(body) + 1
+    length += len(str(length)) - 1
+    return f"{length}{body}".encode()
+
+
+def _peak_mib(call) -> tuple[ApiError, float]:  # noqa: ANN001
+    tracemalloc.start()
+    try:
+        error = _error(call)
+        return error, tracemalloc.get_traced_memory()[1] / (1 << 20)
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("kind", [tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE])
+def test_huge_tar_extended_header_is_refused_unread(tmp_path: Path, kind: bytes) -> None:
+    """A long name (or link, or pax record) of 32 MiB, 32 kB compressed: tarfile would read it whole before the first
+    member reaches the budget; it is refused having read no more than the cap on one member's headers."""
+    size = 32 << 20
+    path = tmp_path / "long.tar.gz"
+    with tarfile.open(path, "w:gz", format=tarfile.GNU_FORMAT) as tf:
+        _tar_record(tf, kind, _Zeros(size), size)
+        for name, data in NERF.items():
+            _tar_add(tf, name, data)
+    assert path.stat().st_size < 100_000
+    error, peak = _peak_mib(lambda: extract_dataset(path, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (422, "bad_archive"), error.message
+    assert peak < 8, f"peak {peak:.1f} MiB"
+    assert _written(tmp_path / "out") == 0
+
+
+def test_tar_headers_that_pile_up_are_refused(tmp_path: Path) -> None:
+    chain = tmp_path / "chain.tar"  # a member behind 2000 long names, each replacing the last
+    with tarfile.open(chain, "w", format=tarfile.GNU_FORMAT) as tf:
+        for _ in range(2000):
+            _tar_record(tf, tarfile.GNUTYPE_LONGNAME, io.BytesIO(b"scene/x\0"), 8)
+        _tar_add(tf, "scene/x", b"x")
+    globals_ = tmp_path / "globals.tar"  # global pax records hold for every later member, so their keys add up
+    with tarfile.open(globals_, "w", format=tarfile.GNU_FORMAT) as tf:
+        for i in range(100):
+            record = _pax(f"key{i}", "x" * 1000)
+            _tar_record(tf, tarfile.XGLTYPE, io.BytesIO(record), len(record))
+            _tar_add(tf, f"scene/{i}", b"")
+    for path in (chain, globals_):
+        error = _error(lambda: extract(path, tmp_path / "out", GENEROUS))  # noqa: B023
+        assert (error.status, error.code) == (422, "bad_archive"), (path.name, error.message)
+
+
+def test_huge_tar_sparse_map_is_refused_unread(tmp_path: Path) -> None:
+    """A GNU 1.0 sparse map of 4 million pieces in 8 MB (10 kB compressed), which tarfile reads into a list before
+    the member it maps reaches the budget."""
+    path = tmp_path / "sparse.tar.gz"
+    with tarfile.open(path, "w:gz", format=tarfile.PAX_FORMAT) as tf:
+        info = tarfile.TarInfo("scene/x")
+        info.pax_headers = {"GNU.sparse.major": "1", "GNU.sparse.minor": "0"}
+        data = b"2000000\n" + b"1\n" * 4_000_000
+        info.size = len(data)
+        tf.addfile(info, io.BytesIO(data))
+    error, peak = _peak_mib(lambda: extract(path, tmp_path / "out", GENEROUS))
+    assert (error.status, error.code) == (422, "bad_archive"), error.message
+    assert peak < 8, f"peak {peak:.1f} MiB"
+
+
+def test_tar_long_names_and_pax_records_are_read(tmp_path: Path) -> None:
+    long_name = "scene/" + "d" * 200 + "/notes.txt"
+    for form in (tarfile.GNU_FORMAT, tarfile.PAX_FORMAT):
+        path = tmp_path / f"{form}.tar.gz"
+        with tarfile.open(path, "w:gz", format=form, pax_headers={"comment": "a git archive's commit"}) as tf:
+            for name, data in {**NERF, long_name: b"hello", "scene/caf\u00e9.txt": b"x"}.items():
+                _tar_add(tf, name, data)
+        out = tmp_path / f"out{form}"
+        assert extract_dataset(path, out, LIMITS).images == 2
+        assert (out / long_name).read_bytes() == b"hello"
 
 
 def test_tar_dataset_is_extracted(tmp_path: Path) -> None:
