@@ -187,6 +187,7 @@ def _run_leased(
     record: JobRecord, *, store: JobStore, storage: Storage, settings: Settings, heartbeat: _Heartbeat, device: str
 ) -> Outcome:
     from symgs_core.config import CompressConfig
+    from symgs_core.datasets import pixel_limit
     from symgs_core.pipeline import compress
     from symgs_core.progress import Cancelled
 
@@ -211,14 +212,15 @@ def _run_leased(
         images = folder / "upload" / "images" / record.images_root if record.images_root is not None else None
         scene = folder / "upload" / "scene.ply"
         try:
-            result = compress(
-                scene,
-                images=images,
-                config=config,
-                progress=_Progress(store, job_id, work.save_checkpoints),
-                checkpoint_dir=folder / "checkpoints",
-                should_stop=stop,
-            )
+            with pixel_limit(settings.max_image_pixels):  # the API checked what it took for images; this, what is read
+                result = compress(
+                    scene,
+                    images=images,
+                    config=config,
+                    progress=_Progress(store, job_id, work.save_checkpoints),
+                    checkpoint_dir=folder / "checkpoints",
+                    should_stop=stop,
+                )
         except Cancelled:
             if heartbeat.lost.is_set():
                 return "lost"

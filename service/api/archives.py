@@ -316,29 +316,44 @@ def find_dataset(entries: list[Entry]) -> tuple[Layout, tuple[str, ...]]:
     )
 
 
-def _images(root: Path) -> Iterator[Path]:
-    for path in root.rglob("*"):
-        if path.suffix.lower() in IMAGE_SUFFIXES and path.is_file():
-            yield path
+def _image_size(path: Path, name: str) -> tuple[int, int] | None:
+    """Width and height from the header of the file at ``path`` (``name`` in the archive); None when Pillow cannot
+    read it and it does not claim to be an image by its suffix (a transforms file, a COLMAP model, notes)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except Image.DecompressionBombError:
+        raise _too_large("image_too_large", f"images: {name} has too many pixels") from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            return None
+        # Pillow's "cannot identify" and the system's errors name the file by its path on this server: their reason
+        # only.
+        if isinstance(exc, UnidentifiedImageError):
+            reason = "not in an image format the service reads"
+        else:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise _invalid("bad_image", f"images: {name} is not a readable image ({reason})") from None
 
 
 def check_images(root: Path, limits: ArchiveLimits) -> int:
-    """Count the images and read each one's size from its header; returns the count."""
-    from PIL import Image
-
+    """Count the images and read each one's size from its header; returns the count. Any file Pillow takes for an
+    image counts, whatever its suffix: a dataset names its images freely (NeRF's ``file_path``, COLMAP's image
+    names), and the worker decodes whatever it names."""
     count = 0
-    for path in _images(root):
+    for path in root.rglob("*"):
+        if not path.is_file():
+            continue
+        name = path.relative_to(root).as_posix()
+        size = _image_size(path, name)
+        if size is None:
+            continue
         count += 1
         if count > limits.max_images:
             raise _too_large("too_many_images", f"images: more than {limits.max_images} images")
-        name = path.relative_to(root).as_posix()
-        try:
-            with Image.open(path) as image:
-                width, height = image.size
-        except Image.DecompressionBombError:
-            raise _too_large("image_too_large", f"images: {name} has too many pixels") from None
-        except (OSError, SyntaxError, ValueError) as exc:
-            raise _invalid("bad_image", f"images: {name} is not a readable image ({exc})") from None
+        width, height = size
         if width * height > limits.max_image_pixels:
             raise _too_large(
                 "image_too_large", f"images: {name} is {width}x{height}, above {limits.max_image_pixels} pixels"

@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .colmap import COLMAP_MODELS, colmap_frames, colmap_model_dir, load_colmap, read_colmap_model
-from .images import load_frames, load_views, read_image, read_premultiplied, resize_image
+from .images import load_frames, load_views, pixel_limit, read_image, read_premultiplied, resize_image
 from .nerf import has_transforms, load_nerf_synthetic, nerf_synthetic_frames, write_nerf_synthetic
 from .posed import (
     LLFF_HOLD,
@@ -30,8 +30,8 @@ from .posed import (
 __all__ = [
     "COLMAP_MODELS", "LLFF_HOLD", "DatasetError", "Layout", "Photograph", "PosedFrame", "Split", "View",
     "colmap_frames", "colmap_model_dir", "composite", "dataset_frames", "dataset_layout", "load_colmap",
-    "load_dataset", "load_nerf_synthetic", "load_photographs", "nerf_synthetic_frames", "read_colmap_model",
-    "read_image", "read_premultiplied", "resize_image", "write_nerf_synthetic",
+    "load_dataset", "load_nerf_synthetic", "load_photographs", "nerf_synthetic_frames", "pixel_limit",
+    "read_colmap_model", "read_image", "read_premultiplied", "resize_image", "write_nerf_synthetic",
 ]  # fmt: skip
 
 

@@ -1,7 +1,14 @@
-"""Image files of a posed set: read (alpha premultiplied), resized, laid on a background."""
+"""Image files of a posed set: read (alpha premultiplied), resized, laid on a background.
+
+A service sets the most pixels an image may have (``pixel_limit``); an image above it is refused from its header,
+before it is decoded, and so is one above Pillow's own bomb limit, whatever the setting.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -11,27 +18,64 @@ from torch import Tensor
 from ..cameras import Camera
 from .posed import DatasetError, Photograph, PosedFrame, View, composite
 
+_PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
+
+
+@contextmanager
+def pixel_limit(pixels: int) -> Iterator[None]:
+    """Refuse images above ``pixels`` (``image_too_large``) while inside. A context, not an argument: the limit is the
+    service's, and images are read several calls below the job that knows it."""
+    token = _PIXEL_LIMIT.set(pixels)
+    try:
+        yield
+    finally:
+        _PIXEL_LIMIT.reset(token)
+
+
+def _check_pixels(path: Path, width: int, height: int) -> None:
+    limit = _PIXEL_LIMIT.get()
+    if limit is not None and width * height > limit:
+        raise DatasetError("image_too_large", f"image {path.name} is {width}x{height}, above {limit} pixels")
+
+
+def _unreadable(path: Path, exc: Exception) -> DatasetError:
+    from PIL import Image, UnidentifiedImageError
+
+    if isinstance(exc, Image.DecompressionBombError):
+        return DatasetError("image_too_large", f"image {path.name} has too many pixels ({exc})")
+    # Pillow's "cannot identify" and the system's errors name the file by its path on the machine that reads it (a
+    # worker's, for a job): their reason only.
+    if isinstance(exc, UnidentifiedImageError):
+        reason = "not in an image format Pillow reads"
+    else:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+    return DatasetError("bad_image", f"cannot read image {path.name}: {reason}")
+
 
 def image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image, UnidentifiedImageError
+    """Width and height of the image at ``path``, from its header."""
+    from PIL import Image
 
     try:
         with Image.open(path) as im:
-            return im.size
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+            width, height = im.size
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise _unreadable(path, exc) from None
+    _check_pixels(path, width, height)
+    return width, height
 
 
 def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
     """Image [H, W, 3] float32 in [0, 1], premultiplied by its alpha channel [H, W, 1] (None: it has none)."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
 
     try:
         with Image.open(path) as im:
+            _check_pixels(path, *im.size)
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DatasetError("bad_image", f"cannot read image {path.name}: {exc}") from None
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise _unreadable(path, exc) from None
     rgb = torch.from_numpy(array[..., :3].copy())
     if not has_alpha:
         return rgb, None

@@ -29,8 +29,8 @@ LLFF_HOLD = 8  # a set without a test split holds out every 8th image by name (t
 class DatasetError(ValueError):
     """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
 
-    Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, malformed,
-    unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
+    Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, image_too_large,
+    malformed, unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
     (``views.check_photographs``) and too_few_images (``views.dataset_views``).
     """
 

@@ -91,6 +91,7 @@ def test_colmap_at_the_top(tmp_path: Path) -> None:
         ({**NERF, **{f"scene/{i}.txt": b"" for i in range(20)}}, None, None, 413, "too_many_entries"),
         ({"readme.txt": b"hi"}, None, None, 422, "bad_dataset"),
         ({**NERF, "scene/train/r_2.png": _png(65)}, None, None, 413, "image_too_large"),
+        ({**NERF, "scene/train/r_2.dat": _png(65)}, None, None, 413, "image_too_large"),  # an image by its content
         ({**NERF, **{f"scene/x{i}.png": _png() for i in range(3)}}, None, None, 413, "too_many_images"),
         ({**NERF, "scene/train/bad.png": b"\x89PNG\r\n\x1a\n garbage"}, None, None, 422, "bad_image"),
         ({**NERF, "scene/train/r_0.png/inner": b"x"}, None, None, 422, "bad_archive"),  # file where a folder goes
@@ -103,6 +104,24 @@ def test_refused_zips(
     error = _error(lambda: extract_dataset(archive, tmp_path / "out" / "x", LIMITS))
     assert (error.status, error.code) == (status, code), error.message
     assert not (tmp_path / "out" / "escape.txt").exists() and not (tmp_path / "escape.txt").exists()
+
+
+def test_images_are_known_by_their_content(tmp_path: Path) -> None:
+    entries = {
+        **NERF,
+        "scene/train/r_2.dat": _png(),
+        "scene/notes.dat": b"not an image",
+        "scene/points.bin": b"\1" * 64,
+    }
+    dataset = extract_dataset(_write_zip(tmp_path / "a.zip", entries), tmp_path / "out", LIMITS)
+    assert dataset.images == 3
+
+
+def test_unreadable_image_is_named_as_in_the_archive(tmp_path: Path) -> None:
+    archive = _write_zip(tmp_path / "a.zip", {**NERF, "scene/train/bad.png": b"no image format at all"})
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out", LIMITS))
+    assert error.code == "bad_image" and "train/bad.png" in error.message
+    assert str(tmp_path) not in error.message and "/out" not in error.message
 
 
 def test_zip_bomb_with_lying_sizes_stops_at_the_cap(tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, ImageFile
 from scipy.spatial.transform import Rotation
 
 from symgs_core.cameras import Camera
@@ -24,7 +24,9 @@ from symgs_core.datasets import (
     load_colmap,
     load_dataset,
     load_nerf_synthetic,
+    pixel_limit,
     read_colmap_model,
+    read_premultiplied,
     write_nerf_synthetic,
 )
 from symgs_core.synthetic import quat_to_matrix
@@ -200,6 +202,44 @@ def test_nerf_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="r_1.png") as err:
         load_nerf_synthetic(tmp_path, "train")
     assert err.value.code == "bad_image"
+    assert str(tmp_path) not in str(err.value)  # the worker's folders are not the client's business
+
+
+def test_images_above_the_pixel_limit_are_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write_nerf(tmp_path, {"train": poses(2)})  # 40x30 pixels
+    meta_path = tmp_path / "transforms_train.json"
+    meta = json.loads(meta_path.read_text())
+    meta["frames"][0]["file_path"] = "./train/r_0.dat"  # an image by its content, whatever its name
+    meta_path.write_text(json.dumps(meta))
+    (tmp_path / "train" / "r_0.png").rename(tmp_path / "train" / "r_0.dat")
+    with pixel_limit(40 * 30):
+        assert len(load_nerf_synthetic(tmp_path, "all")) == 2
+    with pixel_limit(40 * 30 - 1), pytest.raises(DatasetError, match="r_0.dat is 40x30") as err:
+        load_nerf_synthetic(tmp_path, "all")
+    assert err.value.code == "image_too_large"
+
+    def decode(self: ImageFile.ImageFile) -> None:
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(ImageFile.ImageFile, "load", decode)
+    with pixel_limit(100), pytest.raises(DatasetError) as err:
+        read_premultiplied(tmp_path / "train" / "r_0.dat")
+    assert err.value.code == "image_too_large"
+
+
+def test_pillow_bomb_limit_is_image_too_large(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Above twice its MAX_IMAGE_PIXELS Pillow refuses to open an image at all: without a limit of ours, that is
+    still the input's fault, not the service's."""
+    write_nerf(tmp_path, {"train": poses(2)})
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 40 * 30 // 2 - 1)
+    with pytest.raises(DatasetError, match="r_0.png") as err:
+        load_nerf_synthetic(tmp_path, "train")
+    assert err.value.code == "image_too_large"
+    with pytest.raises(DatasetError) as err:
+        read_premultiplied(tmp_path / "train" / "r_1.png")
+    assert err.value.code == "image_too_large"
 
 
 @pytest.mark.parametrize(
