@@ -39,7 +39,8 @@ def dataset_layout(root: str | Path) -> Layout:
     """Which loader reads ``root``; DatasetError when neither layout is there."""
     root = Path(root)
     if not root.is_dir():
-        raise DatasetError("not_found", f"dataset folder {root} does not exist")
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise DatasetError("not_found", f"dataset folder {root} {what}")
     if has_transforms(root):
         return "nerf_synthetic"
     if colmap_model_dir(root) is not None:

@@ -285,8 +285,8 @@ def _pinhole(camera: ColmapCamera, ignore_distortion: bool, camera_id: int) -> t
     if any(d != 0.0 for d in distortion) and not ignore_distortion:
         raise DatasetError(
             "distorted_camera",
-            f"camera {camera_id}: {camera.model} has distortion {list(distortion)}; undistort the images first "
-            f"(colmap image_undistorter) or load with ignore_distortion=True to treat it as a pinhole camera",
+            f"camera {camera_id}: {camera.model} has distortion {list(distortion)}; undistort the photographs first "
+            f"(COLMAP's image_undistorter writes them with a PINHOLE model)",
         )
     fx, fy, cx, cy = (camera.params[i] for i in index)
     return fx, fy, cx, cy

@@ -65,6 +65,10 @@ def image_size(path: Path) -> tuple[int, int]:
     return width, height
 
 
+# Grey modes wider than 8 bits and their white: 16-bit PNGs open as I;16 (or I, by Pillow's version), float TIFFs as F.
+_WIDE_GREY = {"I;16": 65535.0, "I;16L": 65535.0, "I;16B": 65535.0, "I;16N": 65535.0, "I": 65535.0, "F": 1.0}
+
+
 def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
     """Image [H, W, 3] float32 in [0, 1], premultiplied by its alpha channel [H, W, 1] (None: it has none)."""
     from PIL import Image
@@ -72,6 +76,10 @@ def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
     try:
         with Image.open(path) as im:
             _check_pixels(path, *im.size)
+            if im.mode in _WIDE_GREY:
+                # Pillow's conversion to RGB clips these at 255, which would read a 16-bit grey photograph as white
+                grey = np.clip(np.asarray(im, dtype=np.float32) / _WIDE_GREY[im.mode], 0.0, 1.0)
+                return torch.from_numpy(np.repeat(grey[..., None], 3, axis=-1)), None
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
     except (OSError, Image.DecompressionBombError) as exc:

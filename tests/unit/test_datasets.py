@@ -242,6 +242,17 @@ def test_pillow_bomb_limit_is_image_too_large(tmp_path: Path, monkeypatch: pytes
     assert err.value.code == "image_too_large"
 
 
+def test_a_16_bit_grey_photograph_reads_as_its_greys(tmp_path: Path) -> None:
+    """Pillow opens it as I;16 and clips it at 255 on the way to RGB: every pixel would read as white."""
+    grey = np.arange(12 * 8, dtype=np.uint16).reshape(8, 12) * 600  # 0 .. 56,400 of 65,535
+    Image.fromarray(grey).save(tmp_path / "g.png")
+    image, alpha = read_premultiplied(tmp_path / "g.png")
+    assert alpha is None and image.shape == (8, 12, 3)
+    expected = torch.from_numpy(grey.astype(np.float32) / 65535.0)
+    for channel in range(3):
+        torch.testing.assert_close(image[..., channel], expected, rtol=0, atol=1e-7)
+
+
 @pytest.mark.parametrize(
     ("changes", "field"),
     [
@@ -273,6 +284,10 @@ def test_unknown_layout(tmp_path: Path) -> None:
     assert err.value.code == "unknown_layout"
     with pytest.raises(DatasetError) as err:
         load_dataset(tmp_path / "absent")
+    assert err.value.code == "not_found"
+    (tmp_path / "a.ply").write_bytes(b"ply")
+    with pytest.raises(DatasetError, match="a.ply is a file, not a folder") as err:
+        load_dataset(tmp_path / "a.ply")
     assert err.value.code == "not_found"
 
 
