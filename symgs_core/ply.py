@@ -3,7 +3,9 @@
 graphdeco order: ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3``, all float32, with
 ``f_rest`` channel-major: ``f_rest_{c*K + k-1}`` is SH coefficient k (1..K) of colour channel c.
 
-Reading accepts any property order, extra properties (ignored, reported) and float64 values. The header is
+Reading accepts any property order, extra properties (ignored, reported) and float64 values, read as float32; float64
+positions that float32 would move by more than ``POSITION_ROUNDING_LIMIT`` of the scene's size are refused
+(``out_of_range``: a scene far from the origin for its size loses its detail in float32). The header is
 checked against the file size before the body is read, so a header that claims more Gaussians than the file
 holds is refused without allocating for them; so is a file with data after the rows its header declares. Repairs,
 counted in the report:
@@ -17,11 +19,12 @@ any other property, is an error (``non_finite``); so is a finite value the float
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import torch
@@ -38,6 +41,10 @@ OPACITY_LOGIT_MIN = -OPACITY_LOGIT_MAX
 # show, well inside the codec's colour grids (2^24 cells of its finest steps, about 1/512, reach +-32768).
 EXP_LIMIT = 88.0
 LIMITS = {"means": 1e18, "quats": 1e18, "scales": EXP_LIMIT, "sh_dc": 4096.0, "sh_rest": 4096.0}
+# float64 positions the float32 cast moves by more than this fraction of the scene's largest side are refused: such
+# a scene (georeferenced, far from the origin for its size) would lose its detail before the codec sees it. The
+# codec's fitted position steps are about 5e-4 of that side, 50 times more, so a cast below the limit goes unnoticed.
+POSITION_ROUNDING_LIMIT = 1e-5
 
 
 @dataclass
@@ -82,20 +89,71 @@ def _vertex_rows(path: Path, header: PlyHeader) -> np.ndarray | None:
     raise AssertionError("the header has a vertex element")
 
 
+class _PlainHeaderStream:
+    """The file's body behind ``_plain_header``, for plyfile: it parses the header it is given rather than the file's,
+    which it refuses where ``check_header`` is lenient (trailing whitespace on the magic or end_header line, UTF-8
+    comments). Every other attribute is the body file's, offsets included: plyfile maps fixed-size elements through
+    them. ``readline`` passes over blank lines between ascii rows where no element's rows are empty."""
+
+    def __init__(self, header: bytes, body: IO[Any], skip_blank: bool) -> None:
+        self._header, self._body, self._skip_blank = io.BytesIO(header), body, skip_blank
+
+    def read(self, size: int = -1) -> Any:
+        # plyfile reads the header up to its end_header line, then the body; read(0) tells it a text body.
+        return (size and self._header.read(size)) or self._body.read(size)
+
+    def readline(self) -> Any:
+        line = self._body.readline()
+        while self._skip_blank and line and not line.strip():
+            line = self._body.readline()
+        return line
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._body, name)
+
+
+def _plain_header(header: PlyHeader) -> bytes:
+    """``header`` as plain PLY: its format and elements, each line as plyfile writes it."""
+    lines = ["ply", f"format {header.format} 1.0"]
+    for element in header.elements:
+        lines.append(f"element {element.name} {element.count}")
+        lines += [
+            f"property list {length} {kind} {prop}" if length else f"property {kind} {prop}"
+            for prop, kind, length in element.properties
+        ]
+    return "".join(f"{line}\n" for line in [*lines, "end_header"]).encode("ascii")
+
+
+def _rows_follow(stream: _PlainHeaderStream) -> bool:
+    """Whether a non-blank line is left in an ascii ``stream``."""
+    try:
+        return bool(stream.readline())
+    except ValueError:  # not ASCII: something is there
+        return True
+
+
 def _parsed_rows(path: Path, header: PlyHeader) -> np.ndarray:
     """The vertex rows as plyfile parses them (ascii files, files with lists), which stops after the rows the header
-    declares: the file must end there (blank space aside, in ascii), as a binary file's length must match."""
+    declares: the file must end there (blank space aside, in ascii), as a binary file's length must match. Blank
+    lines between ascii rows are passed over (the row count still has to match)."""
     from plyfile import PlyData, PlyParseError
 
     text = header.format == "ascii"
-    try:
-        with open(path, encoding="ascii") if text else open(path, "rb") as f:
-            rows = PlyData.read(f)["vertex"].data
+    with open(path, "rb") as raw:
+        raw.seek(header.size)
+        body: IO[Any] = io.TextIOWrapper(raw, encoding="ascii") if text else raw
+        stream = _PlainHeaderStream(_plain_header(header), body, all(e.properties for e in header.elements))
+        try:
+            rows = PlyData.read(stream)["vertex"].data
             end = "" if text else b""
-            extra = any(chunk.strip() if text else chunk for chunk in iter(lambda: f.read(1 << 16), end))
-    except (PlyParseError, ValueError, EOFError) as exc:
-        code = "truncated" if "early end" in str(exc).lower() or isinstance(exc, EOFError) else "malformed"
-        raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
+            extra = any(chunk.strip() if text else chunk for chunk in iter(lambda: body.read(1 << 16), end))
+        except (PlyParseError, ValueError, EOFError) as exc:
+            # A short last row is a file cut short; a short row with rows after it is a malformed row.
+            cut = "early end-of-file" in str(exc) or isinstance(exc, EOFError)
+            if "early end-of-line" in str(exc):
+                cut = not _rows_follow(stream)
+            code = "truncated" if cut else "malformed"
+            raise PlyError(code, f"{path.name}: cannot read the vertex data ({exc})") from None
     if extra:
         raise PlyError(
             "trailing_data",
@@ -186,6 +244,30 @@ def _checked(values: dict[str, np.ndarray], groups: dict[str, list[str]], name: 
     return repairs
 
 
+def _check_position_rounding(exact: list[np.ndarray], rounded: np.ndarray, name: str) -> None:
+    """PlyError ``out_of_range`` where casting the positions ``exact`` (a column per axis, any float type; checked
+    finite) to ``rounded`` [N, 3] float32 moves one by more than POSITION_ROUNDING_LIMIT of the largest side of
+    their bounding box. Nothing to do for float32 columns, which the cast keeps."""
+    if all(column.dtype.itemsize <= 4 for column in exact) or not len(rounded):
+        return
+    lows, highs = [float(c.min()) for c in exact], [float(c.max()) for c in exact]
+    extent = max(hi - lo for lo, hi in zip(lows, highs, strict=True))
+    moved = []
+    for j, column in enumerate(exact):  # one axis at a time: a temporary of N values, not 3N
+        shift = np.subtract(column, rounded[:, j], dtype=np.float64)
+        moved.append(max(float(shift.max()), -float(shift.min())))
+    limit = POSITION_ROUNDING_LIMIT * extent
+    if extent > 0 and max(moved) > limit:  # all at one point: no detail to lose
+        axes = ", ".join(axis for axis, m in zip(GEOMETRY, moved, strict=True) if m > limit)
+        magnitude = max(max(-lo, hi) for lo, hi in zip(lows, highs, strict=True))
+        raise PlyError(
+            "out_of_range",
+            f"{name}: float64 positions in {axes} lose their detail in float32: at about {magnitude:.3g} with a "
+            f"spread of {extent:.3g}, float32 moves them by up to {max(moved):.3g} (more than "
+            f"{POSITION_ROUNDING_LIMIT:g} of the spread); move the scene near the origin",
+        )
+
+
 def _scene(values: dict[str, np.ndarray], n: int, k: int) -> GaussianScene:
     """The scene whose attributes are the matrices ``values`` (``_columns``' layout), sharing their memory."""
     shapes = {"opacities": (n,), "sh_rest": (n, k, 3)}
@@ -206,6 +288,7 @@ def _to_scene(rows: np.ndarray, rest: list[str], path: Path) -> tuple[GaussianSc
         _fill(sh_rest[:, :, c], rows, matrix, rest[c * k : (c + 1) * k])
     values["sh_rest"] = sh_rest.reshape(n, 3 * k)
     repairs = _checked(values, groups, path.name)
+    _check_position_rounding([rows[axis] for axis in GEOMETRY], values["means"], path.name)
     return _scene(values, n, k), repairs
 
 
@@ -220,6 +303,9 @@ def checked_scene(scene: GaussianScene, name: str = "scene") -> tuple[GaussianSc
             raise PlyError("unsupported_format", f"{name}: {attr} is {t.dtype}, expected float")
         values[attr] = t.detach().to("cpu", torch.float32).numpy().reshape(n, len(groups[attr]))
     repairs = _checked(values, groups, name)
+    if scene.means.dtype == torch.float64:
+        exact = scene.means.detach().cpu().numpy()
+        _check_position_rounding([exact[:, j] for j in range(3)], values["means"], name)
     return _scene(values, n, k), repairs
 
 

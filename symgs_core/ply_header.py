@@ -4,12 +4,15 @@ Standard library only, so the API process checks uploads with the very rules the
 (``ply.read_scene`` calls ``check_header`` first). A header is refused when it cannot describe a graphdeco scene
 (required properties, f_rest numbering, float types) or when its elements cannot fit in the file: every element's
 rows are counted at their smallest size (a list may be empty), so a header claiming 1e12 faces before its vertices
-is refused without reading them; a binary file without lists must be exactly as long as its header says.
+is refused without reading them; a binary file without lists must be exactly as long as its header says. Header
+lines end in LF or CRLF and may carry trailing whitespace (the magic line and end_header's too); comment and obj_info
+lines may hold any bytes (exporters write names in UTF-8), every other line is ASCII.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +33,8 @@ TYPES = {
     "float": (4, "f"), "float32": (4, "f"), "double": (8, "f"), "float64": (8, "f"),
 }  # fmt: skip
 FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+# The end_header line: a whole line (a comment may mention it), ended by LF or CRLF, or cut off by the end of the file.
+_END_HEADER = re.compile(rb"^[^\S\n]*end_header[^\S\n]*(?:\n|\Z)", re.MULTILINE)
 
 
 class PlyError(ValueError):
@@ -92,30 +97,43 @@ class PlyHeader:
         return set(REQUIRED) | set(self.rest)
 
 
-def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
-    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
-        raise PlyError("not_ply", f"{name}: not a PLY file (it does not start with 'ply')")
-    end = head.find(b"end_header")
-    if end < 0:
-        raise PlyError("not_ply", f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES} bytes")
-    newline = head.find(b"\n", end)
-    if newline < 0:
+def _header_lines(head: bytes, name: str) -> tuple[list[bytes], int]:
+    """The lines between the magic line and the end_header line, and the offset of the body (just past the newline
+    that ends the end_header line). Lines end in LF or CRLF; trailing whitespace is allowed on every line."""
+    first = head.split(b"\n", 1)[0]
+    if first.rstrip() != b"ply":
+        if first.startswith(b"ply\r"):  # classic Mac line ends: the whole header is one line to this reader
+            raise PlyError(
+                "unsupported_format", f"{name}: the header's lines end in a bare CR; only LF and CRLF are read"
+            )
+        raise PlyError("not_ply", f"{name}: not a PLY file (its first line is not 'ply')")
+    end = _END_HEADER.search(head, len(first))
+    if end is None:
+        raise PlyError("not_ply", f"{name}: no 'end_header' line in the first {MAX_HEADER_BYTES} bytes")
+    if not end.group().endswith(b"\n"):
         raise PlyError("truncated", f"{name}: the file ends inside its header")
-    try:
-        lines = head[:end].decode("ascii").splitlines()[1:]
-    except UnicodeDecodeError:
-        raise PlyError("malformed", f"{name}: the header is not ASCII text") from None
+    return head[len(first) + 1 : end.start()].split(b"\n"), end.end()
+
+
+def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
+    lines, size = _header_lines(head, name)
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
     comments: list[str] = []
-    for number, raw in enumerate(lines, start=2):
-        words = raw.split()
-        if not words or words[0] == "obj_info":
+    for number, line in enumerate(lines, start=2):
+        keyword = line.split(None, 1)[:1]
+        if keyword in ([], [b"obj_info"]):
             continue
+        if keyword == [b"comment"]:  # free text: exporters write their names and dates in UTF-8
+            comments.append(line.strip()[len("comment") :].strip().decode("utf-8", errors="replace"))
+            continue
+        try:
+            raw = line.decode("ascii")
+        except UnicodeDecodeError:
+            raise PlyError("malformed", f"{name}: header line {number} is not ASCII text") from None
+        words = raw.split()
         bad = PlyError("malformed", f"{name}: header line {number} is malformed: {raw.strip()[:80]!r}")
-        if words[0] == "comment":
-            comments.append(raw.strip()[len("comment") :].strip())
-        elif words[0] == "format":
+        if words[0] == "format":
             if len(words) != 3:
                 raise bad
             fmt = words[1]
@@ -142,7 +160,7 @@ def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
             raise bad
     if fmt is None:
         raise PlyError("malformed", f"{name}: the header has no 'format' line")
-    return fmt, [Element(n, c, tuple(p)) for n, c, p in elements], comments, newline + 1
+    return fmt, [Element(n, c, tuple(p)) for n, c, p in elements], comments, size
 
 
 def _rest_names(names: list[str], name: str) -> tuple[str, ...]:

@@ -111,3 +111,21 @@ def test_empty_scene_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ApiError) as caught:
         check_ply(path, 10)
     assert (caught.value.status, caught.value.code) == (422, "empty_scene")
+
+
+def test_lenient_header_lines_are_accepted_as_the_reader_reads_them(tmp_path: Path) -> None:
+    """A comment naming end_header, UTF-8 in a comment, trailing whitespace on the magic line: the upload is checked
+    and the worker reads it, the body starting right after the end_header line."""
+    path = tmp_path / "s.ply"
+    save_scene(_scene(37, 3), path)
+    data = path.read_bytes()
+    path.write_bytes(
+        data.replace(b"ply\n", b"ply \r\ncomment see end_header docs\ncomment Cr\xc3\xa9\xc3\xa9 par\n", 1)
+        .replace(b"\nend_header\n", b"\nend_header \r\n", 1)
+    )  # fmt: skip
+    body = len(data) - data.index(b"end_header\n") - len(b"end_header\n")
+    header = check_ply(path, 1000)
+    assert (header.count, header.comments) == (37, ("see end_header docs", "Créé par"))
+    assert header.size == path.stat().st_size - body
+    scene, report = read_scene(path)
+    assert report.count == 37 and torch.equal(scene.means, _scene(37, 3).means)

@@ -415,3 +415,156 @@ def test_a_gap_in_the_f_rest_numbering_is_named_not_miscounted(tmp_path: Path) -
         read_scene(write_ply(tmp_path / "gap.ply", cols))
     assert err.value.code == "bad_sh_count"
     assert "match no SH degree" not in str(err.value)
+
+
+def _with_header(path: Path, magic: bytes, extra: list[bytes], end: bytes) -> Path:
+    """``path`` with its magic and end_header lines replaced and ``extra`` lines after its format line."""
+    data = path.read_bytes()
+    size = data.index(b"\nend_header\n") + len(b"\nend_header\n")
+    lines = data[:size].split(b"\n")[:-1]
+    lines = [magic, lines[1], *extra, *lines[2:-1], end]
+    path.write_bytes(b"".join(line + b"\n" for line in lines) + data[size:])
+    return path
+
+
+@pytest.mark.parametrize("text", [False, True])
+@pytest.mark.parametrize(
+    ("magic", "extra", "end", "comments"),
+    [
+        (b"ply \r", [], b"end_header", []),  # trailing whitespace on the magic line, as on any other
+        (b"ply", [], b"end_header \t\r", []),  # and on end_header's: the body starts past its newline
+        (b"ply", [b"comment see end_header docs", b"obj_info end_header"], b"end_header", ["see end_header docs"]),
+        (b"ply", [b"comment Cr\xc3\xa9\xc3\xa9 par \xe9", b"obj_info \xff"], b"end_header", ["Créé par \ufffd"]),
+    ],
+)
+def test_lenient_header_lines_read_the_same_scene(
+    tmp_path: Path, magic: bytes, extra: list[bytes], end: bytes, comments: list[str], text: bool
+) -> None:
+    """What the header check accepts, the body reader reads (plyfile, for ascii, is given a plain header)."""
+    cols = random_columns(9, 1, seed=16)
+    path = _with_header(write_ply(tmp_path / "s.ply", cols, text=text), magic, extra, end)
+    scene, report = read_scene(path)
+    assert_bit_equal(scene, expected_scene(cols, 1))
+    assert (report.count, report.comments) == (9, comments)
+
+
+@pytest.mark.parametrize(
+    ("content", "code", "message"),
+    [
+        (b"ply\rformat ascii 1.0\rend_header\r", "unsupported_format", "bad.ply: the header's lines end in a bare CR"),
+        (b"plyx\nformat ascii 1.0\nend_header\n", "not_ply", "bad.ply: not a PLY file (its first line is not 'ply')"),
+        (b" ply\nformat ascii 1.0\nend_header\n", "not_ply", "bad.ply: not a PLY file (its first line is not 'ply')"),
+        (b"ply\nformat ascii 1.0\ncomment end_header\n", "not_ply", "bad.ply: no 'end_header' line in the first"),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nend_header ", "truncated", "bad.ply: the file ends inside its"),
+        (b"ply\nformat ascii 1.0\nelement v\xc3\xa9rtex 0\nend_header\n", "malformed",
+         "bad.ply: header line 3 is not ASCII text"),
+    ],
+)  # fmt: skip
+def test_header_lines_refused_with_an_exact_message(tmp_path: Path, content: bytes, code: str, message: str) -> None:
+    path = tmp_path / "bad.ply"
+    path.write_bytes(content)
+    with pytest.raises(PlyError) as err:
+        read_scene(path)
+    assert (err.value.code, str(err.value)[: len(message)]) == (code, message)
+
+
+def test_blank_lines_between_ascii_rows_are_passed_over(tmp_path: Path) -> None:
+    cols = random_columns(6, 0, seed=17)
+    data = write_ply(tmp_path / "a.ply", cols, text=True).read_bytes()
+    size = data.index(b"end_header\n") + len(b"end_header\n")
+    rows = data[size:].splitlines(keepends=True)
+    blank = tmp_path / "blank.ply"
+    blank.write_bytes(data[:size] + b"\n \t\r\n" + b"".join(rows[:2]) + b"\n\n" + b"".join(rows[2:]))
+    scene, report = read_scene(blank)
+    assert (report.count, report.repairs) == (6, {})
+    assert_bit_equal(scene, expected_scene(cols, 0))
+    # Blank lines are not rows: one row fewer is a file cut short, whatever blank space follows it.
+    blank.write_bytes(data[:size] + b"\n".join(rows[:2]) + b"\n\n" + b"".join(rows[2:-1]) + b"\n\n")
+    with pytest.raises(PlyError, match="row 5: early end-of-file") as err:
+        read_scene(blank)
+    assert err.value.code == "truncated"
+
+
+def test_a_short_ascii_row_is_malformed_unless_it_ends_the_file(tmp_path: Path) -> None:
+    data = write_ply(tmp_path / "a.ply", random_columns(6, 0, seed=18), text=True).read_bytes()
+    size = data.index(b"end_header\n") + len(b"end_header\n")
+    rows = data[size:].splitlines(keepends=True)
+    short = tmp_path / "short.ply"
+    short.write_bytes(data[:size] + b"".join(rows[:3]) + rows[3].rsplit(b" ", 1)[0] + b"\n" + b"".join(rows[4:]))
+    with pytest.raises(PlyError, match="row 3: property 'rot_3': early end-of-line") as err:
+        read_scene(short)
+    assert err.value.code == "malformed"
+    short.write_bytes(data[:size] + b"".join(rows[:5]) + rows[5].rsplit(b" ", 1)[0] + b"\n\n")
+    with pytest.raises(PlyError, match="row 5: property 'rot_3': early end-of-line") as err:
+        read_scene(short)
+    assert err.value.code == "truncated"
+
+
+def test_ascii_rows_of_an_element_without_properties_stay_blank_lines(tmp_path: Path) -> None:
+    """Such an element's rows are empty lines: they are rows there, not blank space to pass over."""
+    cols = random_columns(3, 0, seed=19)
+    data = write_ply(tmp_path / "a.ply", cols, text=True).read_bytes()
+    path = tmp_path / "marks.ply"
+    path.write_bytes(data.replace(b"element vertex", b"element mark 2\nelement vertex").replace(b"end_header\n",
+                     b"end_header\n\n\n"))  # fmt: skip
+    assert_bit_equal(load_scene(path), expected_scene(cols, 0))
+
+
+def _georeferenced(n: int, offset: float, spread: float) -> dict[str, np.ndarray]:
+    cols = random_columns(n, 0, seed=20)
+    rng = np.random.default_rng(21)
+    for axis in ("x", "y", "z"):
+        cols[axis] = offset + spread * rng.uniform(-0.5, 0.5, size=n)
+    return cols
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_float64_positions_that_lose_their_detail_in_float32_are_refused(tmp_path: Path, text: bool) -> None:
+    """At 1e6 float32 keeps a step of 1/16: a 1 cm scene there would collapse to one point without a word."""
+    cols = _georeferenced(500, 1e6, 0.01)
+    path = write_ply(tmp_path / "utm.ply", cols, text=text)
+    with pytest.raises(PlyError) as err:
+        read_scene(path)
+    moved = max(np.abs(cols[a] - cols[a].astype(np.float32)).max() for a in ("x", "y", "z"))
+    spread = max(np.ptp(cols[a]) for a in ("x", "y", "z"))
+    assert (err.value.code, str(err.value)) == (
+        "out_of_range",
+        f"utm.ply: float64 positions in x, y, z lose their detail in float32: at about 1e+06 with a spread of "
+        f"{spread:.3g}, float32 moves them by up to {moved:.3g} (more than 1e-05 of the spread); move the scene "
+        "near the origin",
+    )
+
+
+@pytest.mark.parametrize(
+    ("offset", "spread"),
+    [
+        (0.0, 10.0),
+        (1e3, 10.0),  # 100 spreads away: float32 moves them by 3e-5 at most, below 1e-5 of 10
+        (1e6, 0.0),  # every Gaussian at one point: no detail to lose
+    ],
+)
+def test_float64_positions_float32_keeps_are_read_as_float32(tmp_path: Path, offset: float, spread: float) -> None:
+    cols = _georeferenced(500, offset, spread)
+    scene, report = read_scene(write_ply(tmp_path / "near.ply", cols))
+    assert report.repairs == {}
+    assert_bit_equal(scene, expected_scene(cols, 0))  # each value cast to float32, to the nearest
+
+
+def test_float64_positions_that_are_float32_values_are_kept_wherever_they_are(tmp_path: Path) -> None:
+    cols = _georeferenced(500, 1e6, 0.01)
+    for axis in ("x", "y", "z"):
+        cols[axis] = cols[axis].astype(np.float32).astype(np.float64)  # a float32 scene written as doubles
+    assert_bit_equal(load_scene(write_ply(tmp_path / "f32.ply", cols)), expected_scene(cols, 0))
+
+
+def test_a_float64_scene_in_memory_is_checked_as_a_file_is() -> None:
+    from symgs_core.ply import checked_scene
+
+    scene = expected_scene(_georeferenced(50, 1e6, 0.01), 0)
+    near = GaussianScene(**{**scene.tensors(), "means": torch.rand(50, 3, dtype=torch.float64) + 100.0})
+    checked, repairs = checked_scene(near)
+    assert repairs == {} and torch.equal(checked.means, near.means.float())
+    far = GaussianScene(**{**scene.tensors(), "means": near.means - 100.0 + 1e6})
+    with pytest.raises(PlyError, match="^scene: float64 positions in x, y, z lose their detail") as err:
+        checked_scene(far)
+    assert err.value.code == "out_of_range"
