@@ -212,6 +212,9 @@ def check_header(
         raise PlyError("missing_property", f"{name}: no 'vertex' element")
     names = [p[0] for p in vertex.properties]
     missing = [p for p in REQUIRED if p not in names]
+    if missing and "packed_position" in names:  # what SuperSplat and splat-transform write: not a broken file
+        raise PlyError("unsupported_format", f"{name}: a PlayCanvas compressed PLY (packed properties in chunks); "
+                       "convert it to a graphdeco PLY first, as PlayCanvas' splat-transform does")  # fmt: skip
     if missing:
         raise PlyError("missing_property", f"{name}: missing required properties {', '.join(missing)}")
     rest = _rest_names(names, name)

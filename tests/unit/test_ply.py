@@ -568,3 +568,37 @@ def test_a_float64_scene_in_memory_is_checked_as_a_file_is() -> None:
     with pytest.raises(PlyError, match="^scene: float64 positions in x, y, z lose their detail") as err:
         checked_scene(far)
     assert err.value.code == "out_of_range"
+
+
+def test_a_playcanvas_compressed_ply_is_named_as_such(tmp_path: Path) -> None:
+    """SuperSplat's export: a valid file of another layout, refused as unsupported, not as one missing its data."""
+    from symgs_core.export import export_scene
+    from symgs_core.synthetic import synthetic_scene
+
+    path = tmp_path / "s.compressed.ply"
+    export_scene(synthetic_scene("global", n=300, seed=1).scene, path)
+    with pytest.raises(PlyError, match="PlayCanvas compressed PLY") as caught:
+        load_scene(path)
+    assert caught.value.code == "unsupported_format"
+
+
+def test_save_scene_writes_ply_only_under_a_name_of_its_own(tmp_path: Path) -> None:
+    from symgs_core.synthetic import synthetic_scene
+
+    scene = synthetic_scene("global", n=40, seed=1).scene
+    for name in ("x.spz", "x.compressed.ply", "x.sog", "x.glb", "meta.json"):
+        with pytest.raises(ValueError, match="export_scene"):
+            save_scene(scene, tmp_path / name)
+        assert not (tmp_path / name).exists()
+    for name in ("x.ply", "x.PLY", "x.part"):
+        save_scene(scene, tmp_path / name)
+        assert len(load_scene(tmp_path / name)) == len(scene)
+
+
+def test_comments_round_trip_in_utf8_and_stay_one_line(tmp_path: Path) -> None:
+    scene, path = GaussianScene.empty(3), tmp_path / "c.ply"
+    save_scene(scene, path, comments=("Créé par un scanner", "plain"))
+    _, report = read_scene(path)
+    assert report.comments == ["Créé par un scanner", "plain"]
+    with pytest.raises(ValueError, match="one line"):
+        save_scene(scene, path, comments=("two\nelement face 9",))
