@@ -114,7 +114,7 @@ CASES = {
     "too many Gaussians": (
         lambda ply: (_header_swap(ply, b"element vertex 20", b"element vertex 99999"), None, None),
         413, "too_many_gaussians"),  # fmt: skip
-    "binary garbage header": (lambda ply: (b"ply\n\xff\xfe\x00end_header\n", None, None), 422, "malformed"),
+    "binary garbage header": (lambda ply: (b"ply\n\xff\xfe\x00\nend_header\n", None, None), 422, "malformed"),
     "upload above the size cap": (lambda ply: (bytes(int(LIMITS["SYMGS_MAX_UPLOAD_BYTES"]) + 1), None, None),
                                   413, "upload_too_large"),  # fmt: skip
     "params not JSON": (lambda ply: (ply, None, "{preset: small"), 422, "bad_params"),
