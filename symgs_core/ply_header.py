@@ -142,6 +142,8 @@ def _parse(head: bytes, name: str) -> tuple[str, list[Element], list[str], int]:
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit():
                 raise bad
+            if any(e[0] == words[1] for e in elements):  # which would hold the Gaussians? plyfile refuses it too
+                raise PlyError("malformed", f"{name}: element {words[1][:40]!r} appears twice")
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:

@@ -250,6 +250,8 @@ def test_gaussian_limit_is_checked_from_the_header(tmp_path: Path) -> None:
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n", "malformed"),
         (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int idx\nend_header\n", "missing_property"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quaternion q\nend_header\n", "malformed"),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nelement vertex 0\nproperty float y\nend_header\n",
+         "malformed"),  # two elements of one name: the header check refuses what plyfile would
     ],
 )
 def test_not_a_scene(tmp_path: Path, content: bytes, code: str) -> None:
