@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import uuid
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -17,8 +18,8 @@ from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
 
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
 _DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
-# How long wait() keeps trying while the API is out of reach or answers 503 (its Redis restarting, a redeploy):
-# long enough to ride out a restart, short enough that a server gone for good is reported.
+# How long wait() and submit() keep trying while the API is out of reach or answers 503 (its Redis restarting, a
+# redeploy): long enough to ride out a restart, short enough that a server gone for good is reported.
 PATIENCE_S = 120.0
 # Pauses between those tries where the API names none (Retry-After): doubling from the first up to the last.
 _FIRST_PAUSE_S, _LAST_PAUSE_S = 0.5, 5.0
@@ -58,7 +59,7 @@ def _retry_after(response: httpx.Response) -> float | None:
 
 
 class _Patience:
-    """The retries of one wait(): the pause before the next try, and whether to try again at all."""
+    """The retries of one wait() or submit(): the pause before the next try, and whether to try again at all."""
 
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
@@ -80,6 +81,16 @@ class _Patience:
         time.sleep(min(retry_after if retry_after is not None else self.backoff, left))
         self.backoff = min(2 * self.backoff, _LAST_PAUSE_S)
         return True
+
+
+def _try_again(patience: _Patience, exc: Exception) -> bool:
+    """After a dropped connection, an API out of reach or a 503: pause (as its Retry-After asks, where it sent one)
+    and say to try again, unless patience has run out. Any other error is the answer."""
+    if isinstance(exc, httpx.TransportError):
+        return patience.pause_before_retry(None)
+    if isinstance(exc, ApiClientError) and exc.status == 503:
+        return patience.pause_before_retry(exc.retry_after)
+    return False
 
 
 def _files(folder: Path) -> Iterator[Path]:
@@ -137,19 +148,29 @@ class SymgsClient:
         params: dict[str, Any] | None = None,
         idempotency_key: str | None = None,
     ) -> Job:
-        """Upload a scene (and a zip/tar of its dataset) and return the queued job."""
-        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        with open(scene, "rb") as scene_file:
-            files: dict[str, Any] = {"scene": (Path(scene).name, scene_file, "application/octet-stream")}
-            data = {"params": json.dumps(params)} if params else None
-            if images is None:
-                response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
-            else:
-                with open(images, "rb") as images_file:
-                    files["images"] = (Path(images).name, images_file, "application/octet-stream")
-                    response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
-        _raise_for(response)
-        return Job.model_validate(response.json())
+        """Upload a scene (and a zip/tar of its dataset) and return the queued job.
+
+        A dropped connection or a 503 is tried again as ``wait`` does. Every try carries one Idempotency-Key (the
+        caller's, or one made here), so a retry whose first try did reach the API gets that job back, not a second.
+        """
+        headers = {"Idempotency-Key": idempotency_key or uuid.uuid4().hex}
+        data = {"params": json.dumps(params)} if params else None
+        patience = _Patience(self.patience)
+        while True:
+            try:
+                with open(scene, "rb") as scene_file:
+                    files: dict[str, Any] = {"scene": (Path(scene).name, scene_file, "application/octet-stream")}
+                    if images is None:
+                        response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+                    else:
+                        with open(images, "rb") as images_file:
+                            files["images"] = (Path(images).name, images_file, "application/octet-stream")
+                            response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+                _raise_for(response)
+                return Job.model_validate(response.json())
+            except (httpx.TransportError, ApiClientError) as exc:
+                if not _try_again(patience, exc):
+                    raise
 
     def job(self, job_id: str) -> Job:
         response = self.http.get(f"/v1/jobs/{job_id}")
@@ -204,13 +225,9 @@ class SymgsClient:
                     if on_event is not None:
                         on_event(item.event)
                 job = self.job(job_id)
-            except httpx.TransportError:
-                if patience.pause_before_retry(None):
+            except (httpx.TransportError, ApiClientError) as exc:
+                if _try_again(patience, exc):
                     continue  # resume after the last event seen
-                raise
-            except ApiClientError as exc:
-                if exc.status == 503 and patience.pause_before_retry(exc.retry_after):
-                    continue
                 raise
             patience.reset()
             if job.state in TERMINAL_STATES:

@@ -7,7 +7,9 @@ from __future__ import annotations
 import json
 import shutil
 import socket
+import threading
 from collections.abc import Iterator
+from pathlib import Path
 from urllib.parse import urlsplit
 
 import httpx
@@ -108,3 +110,27 @@ def test_an_upload_declared_over_the_cap_is_refused_before_its_body(outage_stack
             answer += chunk
     assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
     assert b"upload_too_large" in answer
+
+
+def test_a_submission_during_a_redis_restart_waits_and_makes_one_job(
+    outage_stack: LocalStack, tmp_path: Path, small_ply: bytes
+) -> None:
+    """The client tries again as the 503's Retry-After asks, every try under one Idempotency-Key: the job is made
+    once Redis is back, and only once."""
+    from service.client import SymgsClient
+
+    scene = tmp_path / "s.ply"
+    scene.write_bytes(small_ply)
+    api = httpx.Client(base_url=outage_stack.api_url, headers={"Authorization": f"Bearer {KEY_A}"}, timeout=60)
+    before = api.get("/v1/jobs", params={"limit": 100}).json()["total"]
+    outage_stack.stop_redis()
+    restart = threading.Timer(3.0, outage_stack.start_redis)
+    restart.start()
+    try:
+        with SymgsClient(outage_stack.api_url, KEY_A, patience=60) as client:
+            job = client.submit(scene, params=TINY)
+    finally:
+        restart.join()
+    assert job.state == "queued"
+    assert api.get("/v1/jobs", params={"limit": 100}).json()["total"] == before + 1
+    api.close()
