@@ -42,9 +42,10 @@ OPACITY_LOGIT_MIN = -OPACITY_LOGIT_MAX
 EXP_LIMIT = 88.0
 LIMITS = {"means": 1e18, "quats": 1e18, "scales": EXP_LIMIT, "sh_dc": 4096.0, "sh_rest": 4096.0}
 # float64 positions the float32 cast moves by more than this fraction of the scene's largest side are refused: such
-# a scene (georeferenced, far from the origin for its size) would lose its detail before the codec sees it. The
-# codec's fitted position steps are about 5e-4 of that side, 50 times more, so a cast below the limit goes unnoticed.
-POSITION_ROUNDING_LIMIT = 1e-5
+# a scene (georeferenced, far from the origin for its size: past about 2,000 times its size) would lose detail the
+# codec keeps. The codec's fitted position steps are about 5e-4 of that side, five times more, so a cast below the
+# limit stays under the codec's own rounding; a scene a few hundred sizes out, common enough, is read.
+POSITION_ROUNDING_LIMIT = 1e-4
 
 
 @dataclass

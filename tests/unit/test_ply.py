@@ -532,7 +532,7 @@ def test_float64_positions_that_lose_their_detail_in_float32_are_refused(tmp_pat
     assert (err.value.code, str(err.value)) == (
         "out_of_range",
         f"utm.ply: float64 positions in x, y, z lose their detail in float32: at about 1e+06 with a spread of "
-        f"{spread:.3g}, float32 moves them by up to {moved:.3g} (more than 1e-05 of the spread); move the scene "
+        f"{spread:.3g}, float32 moves them by up to {moved:.3g} (more than 0.0001 of the spread); move the scene "
         "near the origin",
     )
 
@@ -541,7 +541,8 @@ def test_float64_positions_that_lose_their_detail_in_float32_are_refused(tmp_pat
     ("offset", "spread"),
     [
         (0.0, 10.0),
-        (1e3, 10.0),  # 100 spreads away: float32 moves them by 3e-5 at most, below 1e-5 of 10
+        (1e3, 10.0),  # 100 spreads away: float32 moves them by 3e-5 at most, below 1e-4 of 10
+        (500.0, 1.0),  # 500 spreads away: float32 moves them by 1.5e-5 at most, below 1e-4 of 1
         (1e6, 0.0),  # every Gaussian at one point: no detail to lose
     ],
 )
