@@ -10,12 +10,13 @@ import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 
 from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
 
+T = TypeVar("T")
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
 _DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
 # How long wait() and submit() keep trying while the API is out of reach or answers 503 (its Redis restarting, a
@@ -155,19 +156,27 @@ class SymgsClient:
         """
         headers = {"Idempotency-Key": idempotency_key or uuid.uuid4().hex}
         data = {"params": json.dumps(params)} if params else None
+
+        def post() -> Job:
+            with open(scene, "rb") as scene_file:
+                files: dict[str, Any] = {"scene": (Path(scene).name, scene_file, "application/octet-stream")}
+                if images is None:
+                    response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+                else:
+                    with open(images, "rb") as images_file:
+                        files["images"] = (Path(images).name, images_file, "application/octet-stream")
+                        response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+            _raise_for(response)
+            return Job.model_validate(response.json())
+
+        return self._patiently(post)
+
+    def _patiently(self, attempt: Callable[[], T]) -> T:
+        """``attempt()``'s answer, trying again after a dropped connection or a 503 (``_try_again``)."""
         patience = _Patience(self.patience)
         while True:
             try:
-                with open(scene, "rb") as scene_file:
-                    files: dict[str, Any] = {"scene": (Path(scene).name, scene_file, "application/octet-stream")}
-                    if images is None:
-                        response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
-                    else:
-                        with open(images, "rb") as images_file:
-                            files["images"] = (Path(images).name, images_file, "application/octet-stream")
-                            response = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
-                _raise_for(response)
-                return Job.model_validate(response.json())
+                return attempt()
             except (httpx.TransportError, ApiClientError) as exc:
                 if not _try_again(patience, exc):
                     raise
@@ -234,22 +243,36 @@ class SymgsClient:
                 return job
 
     def download(self, job_id: str, name: str, dest: str | os.PathLike[str]) -> Path:
-        """Save a result file (result.symgs, result.ply, result.spz, report.json, charts/<name>.png) to ``dest``."""
+        """Save a result file (result.symgs, result.ply, result.spz, report.json, charts/<name>.png) to ``dest``,
+        whole or not at all: it is written under a temporary name, and a download cut short (or answered 503) is
+        tried again from the start, as ``submit`` tries again."""
         path = _DOWNLOAD_PATHS.get(name, name)
         dest = Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        with self.http.stream("GET", f"/v1/jobs/{job_id}/{path}") as response:
-            if not response.is_success:
-                response.read()
-                _raise_for(response)
-            with open(dest, "wb") as out:
-                for chunk in response.iter_bytes(1 << 20):
-                    out.write(chunk)
-        return dest
+        # a device or pipe (not a regular file) is written directly
+        partial = dest if dest.exists() and not dest.is_file() else dest.with_name(f".{dest.name}.partial")
+
+        def get() -> Path:
+            with self.http.stream("GET", f"/v1/jobs/{job_id}/{path}") as response:
+                if not response.is_success:
+                    response.read()
+                    _raise_for(response)
+                with open(partial, "wb") as out:
+                    for chunk in response.iter_bytes(1 << 20):
+                        out.write(chunk)
+            if partial != dest:
+                os.replace(partial, dest)
+            return dest
+
+        try:
+            return self._patiently(get)
+        finally:
+            if partial != dest:
+                partial.unlink(missing_ok=True)
 
     def fetch(self, job_id: str, folder: str | os.PathLike[str]) -> list[Path]:
         """Save every result file of a finished job into ``folder``; returns the paths written."""
-        job = self.job(job_id)
+        job = self._patiently(lambda: self.job(job_id))
         folder = Path(folder)
         written = []
         for name in job.artifacts:

@@ -84,3 +84,26 @@ def test_downloads_that_cannot_be_written_give_one_line(tmp_path: Path, capsys) 
     with serving(api) as url:
         assert main(["fetch", A, "-o", str(out), "--server", url]) == 2
     assert "cannot write" in (err := _one_error_line(capsys, "fetch")) and "No space left on device" in err, err
+
+
+def test_fetch_rides_out_a_503_and_writes_each_file_whole(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """A download answered 503 (Redis restarting) or cut short is tried again; nothing is left under the result's
+    name but the whole file."""
+    script = _finished(A, b"x" * 4096)
+    script[f"GET /v1/jobs/{A}/result"] = [unavailable("0"), unavailable("0"), (200, {}, b"x" * 4096)]
+    api = ScriptedApi(script)
+    out = tmp_path / "out"
+    with serving(api) as url:
+        assert main(["fetch", A, "-o", str(out), "--server", url]) == 0, capsys.readouterr().err
+    assert (out / "result.symgs").read_bytes() == b"x" * 4096
+    assert len(api.asked(f"GET /v1/jobs/{A}/result")) == 3
+    assert sorted(p.name for p in out.iterdir()) == ["result.symgs"]  # no partial file left
+
+
+def test_submissions_carry_one_idempotency_key_across_retries(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    scene = _scene(tmp_path / "s.ply")
+    api = ScriptedApi({"POST /v1/jobs": [unavailable("0"), job(A, "queued")], **_finished(A, b"r")})
+    with serving(api) as url:
+        assert main(["submit", str(scene), "--server", url, "--no-wait"]) == 0, capsys.readouterr().err
+    keys = [headers.get("idempotency-key") for headers in api.asked("POST /v1/jobs")]
+    assert len(keys) == 2 and keys[0] and keys[0] == keys[1]
