@@ -97,6 +97,13 @@ class PlyHeader:
         return set(REQUIRED) | set(self.rest)
 
 
+# Splat formats an upload may come in by mistake, by their first bytes: named in the refusal, so a user knows why.
+_OTHER_FORMATS = (
+    (b"NGSP", "an uncompressed .spz"), (b"\x1f\x8b", "a gzip file (a .spz)"), (b"PK\x03\x04", "a zip archive (a .sog)"),
+    (b"glTF", "glTF binary (a .glb)"),
+)  # fmt: skip
+
+
 def _header_lines(head: bytes, name: str) -> tuple[list[bytes], int]:
     """The lines between the magic line and the end_header line, and the offset of the body (just past the newline
     that ends the end_header line). Lines end in LF or CRLF; trailing whitespace is allowed on every line."""
@@ -106,7 +113,9 @@ def _header_lines(head: bytes, name: str) -> tuple[list[bytes], int]:
             raise PlyError(
                 "unsupported_format", f"{name}: the header's lines end in a bare CR; only LF and CRLF are read"
             )
-        raise PlyError("not_ply", f"{name}: not a PLY file (its first line is not 'ply')")
+        known = next((what for magic, what in _OTHER_FORMATS if head.startswith(magic)), None)
+        hint = f"; it looks like {known}: scenes come in as graphdeco .ply" if known else ""
+        raise PlyError("not_ply", f"{name}: not a PLY file (its first line is not 'ply'){hint}")
     end = _END_HEADER.search(head, len(first))
     if end is None:
         raise PlyError("not_ply", f"{name}: no 'end_header' line in the first {MAX_HEADER_BYTES} bytes")

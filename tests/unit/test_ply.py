@@ -605,3 +605,16 @@ def test_comments_round_trip_in_utf8_and_stay_one_line(tmp_path: Path) -> None:
     assert report.comments == ["Créé par un scanner", "plain"]
     with pytest.raises(ValueError, match="one line"):
         save_scene(scene, path, comments=("two\nelement face 9",))
+
+
+@pytest.mark.parametrize("extension", [".spz", ".sog", ".glb"])
+def test_an_upload_in_another_splat_format_is_named(tmp_path: Path, extension: str) -> None:
+    from symgs_core.export import export_scene
+    from symgs_core.synthetic import synthetic_scene
+
+    path = tmp_path / f"s{extension}"
+    export_scene(synthetic_scene("global", n=300, seed=1).scene, path)
+    named = rf"it looks like .*\(a \{extension}\): scenes come in as graphdeco .ply"
+    with pytest.raises(PlyError, match=named) as caught:
+        load_scene(path)
+    assert caught.value.code == "not_ply"
