@@ -316,11 +316,17 @@ def find_dataset(entries: list[Entry]) -> tuple[Layout, tuple[str, ...]]:
     )
 
 
-def _image_size(path: Path, name: str) -> tuple[int, int] | None:
+def _image_size(path: Path, name: str, max_pixels: int) -> tuple[int, int] | None:
     """Width and height from the header of the file at ``path`` (``name`` in the archive); None when Pillow cannot
     read it and it does not claim to be an image by its suffix (a transforms file, a COLMAP model, notes)."""
     from PIL import Image, UnidentifiedImageError
 
+    with open(path, "rb") as f:
+        jpeg = f.read(2) == b"\xff\xd8"
+    # Pillow keeps every APP segment of a JPEG as it opens it: one stuffed with them would be held whole. No image
+    # within the pixel limit needs more than 8 bytes a pixel (16-bit RGBA, uncompressed), whatever it carries besides.
+    if jpeg and path.stat().st_size > 8 * max_pixels + (1 << 20):
+        raise _too_large("image_too_large", f"images: {name} holds more bytes than an image of {max_pixels} pixels")
     try:
         with Image.open(path) as image:
             return image.size
@@ -347,7 +353,7 @@ def check_images(root: Path, limits: ArchiveLimits) -> int:
         if not path.is_file():
             continue
         name = path.relative_to(root).as_posix()
-        size = _image_size(path, name)
+        size = _image_size(path, name, limits.max_image_pixels)
         if size is None:
             continue
         count += 1

@@ -106,6 +106,22 @@ def test_refused_zips(
     assert not (tmp_path / "out" / "escape.txt").exists() and not (tmp_path / "escape.txt").exists()
 
 
+def test_a_jpeg_stuffed_with_app_segments_is_refused_unopened(tmp_path: Path) -> None:
+    """Pillow holds every APP segment of a JPEG as it opens it: 16x16 pixels with 1.3 MB of them is refused by its
+    size, before it is opened."""
+    buffer = io.BytesIO()
+    Image.new("RGB", (16, 16)).save(buffer, format="JPEG")
+    jpeg = buffer.getvalue()
+    segment = b"\xff\xef" + (65535).to_bytes(2, "big") + bytes(65533)  # APP15, as long as a segment may be
+    stuffed = jpeg[:2] + segment * 20 + jpeg[2:]
+    limits = ArchiveLimits(max_entries=20, max_bytes=8 << 20, max_images=4, max_image_pixels=64 * 64)
+    archive = _write_zip(tmp_path / "a.zip", {**NERF, "scene/train/r_2.jpg": stuffed})
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out", limits))
+    assert (error.status, error.code) == (413, "image_too_large"), error.message
+    plain = _write_zip(tmp_path / "b.zip", {**NERF, "scene/train/r_2.jpg": jpeg})
+    assert extract_dataset(plain, tmp_path / "out2", limits).images == 3
+
+
 def test_images_are_known_by_their_content(tmp_path: Path) -> None:
     entries = {
         **NERF,
