@@ -8,6 +8,7 @@ import json
 import shutil
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -16,7 +17,7 @@ import httpx
 import pytest
 
 from service.cli.stack import LocalStack
-from tests.integration.conftest import KEY_A, TINY
+from tests.integration.conftest import KEY_A, TINY, read_sse
 
 pytestmark = pytest.mark.integration
 
@@ -133,4 +134,31 @@ def test_a_submission_during_a_redis_restart_waits_and_makes_one_job(
         restart.join()
     assert job.state == "queued"
     assert api.get("/v1/jobs", params={"limit": 100}).json()["total"] == before + 1
+    api.close()
+
+
+def test_an_event_stream_ends_cleanly_when_redis_goes_away(outage_stack: LocalStack, small_ply: bytes) -> None:
+    """The stream of a waiting job ends, its body whole, when Redis goes: the client reconnects with the last id it
+    has, as SSE clients do, rather than reading a body cut short."""
+    api = httpx.Client(base_url=outage_stack.api_url, headers={"Authorization": f"Bearer {KEY_A}"}, timeout=60)
+    accepted = api.post("/v1/jobs", files={"scene": ("s.ply", small_ply)}, data={"params": json.dumps(TINY)})
+    assert accepted.status_code == 202, accepted.text
+    outcome: dict = {}
+
+    def follow() -> None:
+        try:
+            with api.stream("GET", f"/v1/jobs/{accepted.json()['id']}/events") as response:
+                outcome["messages"] = read_sse(response)
+        except Exception as exc:  # noqa: BLE001 - what the client would see, kept for the assertion
+            outcome["error"] = exc
+
+    reader = threading.Thread(target=follow)
+    reader.start()
+    time.sleep(1.0)  # the stream has sent the job's first event and waits for more
+    outage_stack.stop_redis()
+    reader.join(timeout=30)
+    outage_stack.start_redis()
+    assert not reader.is_alive(), "the stream did not end"
+    assert "error" not in outcome, outcome
+    assert [json.loads(m["data"])["state"] for m in outcome["messages"]] == ["queued"]
     api.close()
