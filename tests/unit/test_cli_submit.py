@@ -3,6 +3,7 @@ out, and local mistakes (a dataset folder that is not one, downloads that cannot
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -76,6 +77,7 @@ def test_images_that_are_not_a_folder_give_one_line(tmp_path: Path, capsys, imag
     assert f"--images {tmp_path / images} is not a folder" in _one_error_line(capsys, "submit")
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full, a device whose every write fails")
 def test_downloads_that_cannot_be_written_give_one_line(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     out = tmp_path / "out"
     out.mkdir()
