@@ -19,7 +19,7 @@ from redis import RedisError
 from .celery_app import QUEUES, send_compress
 from .routing import choose_queue
 from .settings import Settings
-from .storage import Storage
+from .storage import Storage, StorageError
 from .store import JobStore
 
 log = logging.getLogger(__name__)
@@ -33,6 +33,7 @@ class SweepReport:
     failed: list[str] = field(default_factory=list)
     cancelled: list[str] = field(default_factory=list)
     expired: list[str] = field(default_factory=list)
+    abandoned: list[str] = field(default_factory=list)  # files of unrecorded submissions, deleted late
 
 
 def delete_if_requested(store: JobStore, storage: Storage, job_id: str) -> None:
@@ -119,6 +120,17 @@ def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report
         report.rerouted.append(job_id)
 
 
+def delete_abandoned(store: JobStore, storage: Storage, report: SweepReport) -> None:
+    """Delete the files of submissions refused while the storage was failing, which the API could not delete then."""
+    for owner, job_id in store.abandoned():
+        try:
+            storage.delete(owner=owner, job_id=job_id)
+        except StorageError:
+            return  # still failing: the next sweep tries again
+        store.forget_abandoned(owner, job_id)
+        report.abandoned.append(job_id)
+
+
 def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepReport) -> None:
     """Delete jobs (records and files) that finished more than ``job_ttl`` seconds ago, and stale uploads."""
     for job_id in store.finished_before(time.time() - settings.job_ttl):
@@ -136,12 +148,14 @@ def sweep(store: JobStore, storage: Storage, celery: Celery, settings: Settings)
     recover_dropped(store, celery, settings, report)
     reroute_stranded(store, celery, settings, report)
     expire(store, storage, settings, report)
+    delete_abandoned(store, storage, report)
     return report
 
 
 class Maintenance(threading.Thread):
-    """A worker's background thread: a liveness heartbeat every third of a lease, a sweep every
-    ``maintenance_seconds`` (and at once on start)."""
+    """A worker's background work: a liveness heartbeat every third of a lease, and on a thread of its own a sweep
+    every ``maintenance_seconds`` (and at once on start). Apart, so that a sweep held up by a slow storage or Redis
+    never lets the heartbeat lapse: the worker would look dead, and its jobs be taken over."""
 
     def __init__(
         self, *, store: JobStore, storage: Storage, celery: Celery, settings: Settings, mode: str, name: str
@@ -150,25 +164,33 @@ class Maintenance(threading.Thread):
         self.store, self.storage, self.celery, self.settings = store, storage, celery, settings
         self.mode, self.worker_name = mode, name
         self._halt = threading.Event()
+        self._sweeper = threading.Thread(target=self._sweep_loop, name="symgs-sweep", daemon=True)
 
     def run(self) -> None:
-        next_sweep = 0.0
-        beat = self.settings.lease_seconds / 3
+        self._sweeper.start()
         while True:
             try:
                 self.store.worker_beat(self.mode, self.worker_name)
-                if time.monotonic() >= next_sweep:
-                    next_sweep = time.monotonic() + self.settings.maintenance_seconds
-                    sweep(self.store, self.storage, self.celery, self.settings)
-            except Exception:  # noqa: BLE001 - a failed sweep (Redis away) must not end the thread
-                log.exception("maintenance sweep failed; retrying")
-            if self._halt.wait(min(beat, self.settings.maintenance_seconds)):
+            except Exception:  # noqa: BLE001 - Redis away: beat again next time
+                log.exception("worker heartbeat failed; retrying")
+            if self._halt.wait(self.settings.lease_seconds / 3):
                 break
         try:
             self.store.worker_gone(self.mode, self.worker_name)
         except RedisError:
             log.warning("could not remove worker %s from the live set", self.worker_name)
 
+    def _sweep_loop(self) -> None:
+        while True:
+            try:
+                sweep(self.store, self.storage, self.celery, self.settings)
+            except Exception:  # noqa: BLE001 - a failed sweep (Redis or the storage away) must not end the thread
+                log.exception("maintenance sweep failed; retrying")
+            if self._halt.wait(self.settings.maintenance_seconds):
+                break
+
     def stop(self) -> None:
         self._halt.set()
         self.join(timeout=5)
+        if self._sweeper.is_alive():
+            self._sweeper.join(timeout=5)

@@ -112,7 +112,8 @@ class Storage(ABC):
 
     @abstractmethod
     def adopt(self, staging: Path, *, owner: str, job_id: str) -> None:
-        """Make a checked staging folder the job's ``upload/`` (the staging folder is gone afterwards)."""
+        """Make a checked staging folder the job's ``upload/`` (the staging folder is gone afterwards). Should it fail
+        part way, what it wrote stays: the caller deletes the job's files."""
 
     def discard(self, staging: Path) -> None:
         """Remove a staging folder whose upload was refused."""

@@ -60,7 +60,10 @@ def make_client() -> Any:  # noqa: ANN401 - botocore's generated S3 client class
 
     custom = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
     config = Config(
-        retries={"mode": "standard", "max_attempts": 5},
+        # A server that hangs must not hold an API request or a worker's sweep for minutes (botocore's defaults: 60 s
+        # a read, five tries): a request fails within about half a minute, and the API answers 503.
+        connect_timeout=5, read_timeout=10,
+        retries={"mode": "standard", "max_attempts": 3},
         max_pool_connections=32,
         s3={"addressing_style": "path"} if custom else None,
     )
@@ -113,6 +116,10 @@ class S3Storage(Storage):
         bucket, prefix = parse_url(url)
         return cls(bucket, prefix, cache=cache)
 
+    def key_root(self) -> str:
+        """The start of every key the service writes: ``<prefix>/tenants/`` (``tenants/`` without a prefix)."""
+        return "/".join(p for p in (self.prefix, "tenants") if p) + "/"
+
     def key(self, owner: str, job_id: str, *parts: str) -> str:
         return "/".join(p for p in (self.prefix, job_key(owner, job_id), *parts) if p)
 
@@ -152,11 +159,8 @@ class S3Storage(Storage):
         return path
 
     def adopt(self, staging: Path, *, owner: str, job_id: str) -> None:
-        try:
+        try:  # what is written before a failure, the caller deletes (or has the sweep delete)
             self.upload_folder(staging, self.key(owner, job_id, "upload"))
-        except BaseException:
-            self.delete(owner=owner, job_id=job_id)  # the job is never recorded: leave nothing of it
-            raise
         finally:
             shutil.rmtree(staging, ignore_errors=True)
 
@@ -205,7 +209,9 @@ class S3Storage(Storage):
         removed = sweep_folders(self.cache / "staging", older_than_s) + sweep_folders(self.cache / "jobs", older_than_s)
         cutoff = datetime.fromtimestamp(time.time() - older_than_s, timezone.utc)
         with _s3_errors("listing unfinished uploads"):
-            pages = self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket, Prefix=self.prefix)
+            # the service's own uploads only: under the prefix as a folder, in the jobs' layout
+            ours = self.key_root()
+            pages = self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket, Prefix=ours)
             stale = [u for page in pages for u in page.get("Uploads", ()) if u["Initiated"] < cutoff]
         for upload in stale:
             with _s3_errors("aborting an unfinished upload"):

@@ -334,6 +334,16 @@ class JobStore:
 
     # -- cancellation ------------------------------------------------------------------------------------------
 
+    def abandon(self, owner: str, job_id: str) -> None:
+        """Files of a job that was never recorded, which the storage could not delete yet: the sweep tries again."""
+        self.r.sadd(f"{P}abandoned", f"{owner}/{job_id}")
+
+    def abandoned(self) -> list[tuple[str, str]]:
+        return [(owner, job_id) for owner, _, job_id in (m.partition("/") for m in self.r.smembers(f"{P}abandoned"))]
+
+    def forget_abandoned(self, owner: str, job_id: str) -> None:
+        self.r.srem(f"{P}abandoned", f"{owner}/{job_id}")
+
     def request_cancel(self, job_id: str, ttl_s: int) -> None:
         with self.r.pipeline(transaction=True) as p:
             p.set(f"{P}job:{job_id}:cancel", "1", ex=ttl_s)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,12 +19,14 @@ from symgs_core.ply_header import PlyError, PlyHeader, read_header
 from worker.celery_app import send_compress
 from worker.routing import choose_queue
 from worker.settings import Settings
-from worker.storage import Storage
+from worker.storage import Storage, StorageError
 from worker.store import JobRecord, JobStore
 
 from .archives import ArchiveLimits, extract_dataset
 from .errors import ApiError
 from .uploads import Upload, receive_upload
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -125,16 +128,28 @@ async def submit(
         record = JobRecord(
             id=new_id, owner=owner, params=params, queue=queue, scene=scene, images=images, images_root=images_root
         )
+        job_id = new_id  # from here, whatever adopt wrote goes again if the job is not recorded
         await run_in_threadpool(lambda: storage.adopt(staging, owner=owner, job_id=new_id))
-        job_id = new_id
         await run_in_threadpool(_record_and_queue, record, store, celery)
         return Submitted(record, created=True)
     except BaseException:
         if job_id is not None:
-            await run_in_threadpool(lambda: storage.delete(owner=owner, job_id=job_id))
+            await run_in_threadpool(_abandon, store, storage, owner, job_id)
         raise
     finally:
         await run_in_threadpool(storage.discard, staging)  # nothing left to remove once adopted
+
+
+def _abandon(store: JobStore, storage: Storage, owner: str, job_id: str) -> None:
+    """Delete the files of a job that was not recorded; where the storage is failing (the likely reason it was not),
+    leave them to the workers' sweep, which no record would lead to otherwise."""
+    try:
+        storage.delete(owner=owner, job_id=job_id)
+    except StorageError:
+        try:
+            store.abandon(owner, job_id)
+        except RedisError:
+            log.warning("job %s of %s: its files could not be deleted nor recorded for deletion", job_id, owner)
 
 
 def _same_request(store: JobStore, key: str, binding: tuple[str, str], mark: str) -> JobRecord | None:

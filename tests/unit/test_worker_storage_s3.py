@@ -108,13 +108,20 @@ def test_unfinished_uploads_and_stale_local_copies_are_swept(server: S3Server, t
     storage = _storage(server, tmp_path)
     key = f"{PREFIX}/tenants/{OWNER}/jobs/{JOB}/result/result.ply"
     server.client().create_multipart_upload(Bucket=BUCKET, Key=key)  # its process died before completing it
+    # Not the service's: beside the prefix (same start, another folder), and under it outside the jobs' layout
+    theirs = [f"{PREFIX}2/tenants/{OWNER}/jobs/{JOB}/result/result.ply", f"{PREFIX}/backups/b.tar"]
+    for other in theirs:
+        server.client().create_multipart_upload(Bucket=BUCKET, Key=other)
     old, fresh = storage.new_staging(), storage.new_staging()
     past = time.time() - 7200
     os.utime(old, (past, past))
     # moto dates every multipart upload in 2010, so the upload counts as stale here.
     assert storage.sweep_staging(3600) == 2
     assert not old.exists() and fresh.exists()
-    assert server.client().list_multipart_uploads(Bucket=BUCKET, Prefix=PREFIX).get("Uploads", []) == []
+    left = server.client().list_multipart_uploads(Bucket=BUCKET, Prefix=PREFIX).get("Uploads", [])
+    assert sorted(u["Key"] for u in left) == sorted(theirs)
+    for upload in left:
+        server.client().abort_multipart_upload(Bucket=BUCKET, Key=upload["Key"], UploadId=upload["UploadId"])
 
 
 def test_hostile_object_names_never_leave_the_workspace(server: S3Server, tmp_path: Path) -> None:

@@ -5,6 +5,7 @@ leases, and the sweep that recovers jobs of lost workers."""
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,10 +15,18 @@ import pytest
 from api_schemas import JobEvent, JobParams
 from service.cli.stack import LocalStack, embedded_redis_server
 from worker.celery_app import make_celery
-from worker.maintenance import SweepReport, expire, recover_dropped, recover_lost, reroute_stranded
+from worker.maintenance import (
+    Maintenance,
+    SweepReport,
+    delete_abandoned,
+    expire,
+    recover_dropped,
+    recover_lost,
+    reroute_stranded,
+)  # fmt: skip
 from worker.runner import _Progress, headline, mark_failed
 from worker.settings import Settings
-from worker.storage import DirectoryStorage
+from worker.storage import DirectoryStorage, StorageError
 from worker.store import JobRecord, JobStore, owner_of
 
 from ._samples import sample_report
@@ -231,6 +240,66 @@ def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, red
     expire(store, storage, settings, report)
     assert report.expired == [_job(2).id]
     assert store.get(_job(2).id) is None and not storage.job_dir(_job(2).owner, _job(2).id).exists()
+
+
+class _FailingDisk(DirectoryStorage):
+    """A folder storage whose deletions fail while ``down`` (an S3 endpoint away, a disk gone read-only)."""
+
+    down = True
+
+    def delete(self, *, owner: str, job_id: str) -> None:
+        if self.down:
+            raise StorageError("the storage is not reachable")
+        super().delete(owner=owner, job_id=job_id)
+
+
+def test_files_of_a_submission_refused_while_the_storage_failed_are_deleted_once_it_is_back(
+    store: JobStore, tmp_path: Path
+) -> None:
+    """The API refused the submission with 503 and could not delete what it had written of it; no job record will
+    ever lead to those files, so the sweep deletes them once the storage answers."""
+    storage = _FailingDisk(tmp_path)
+    storage.write_artifact(owner="o1", job_id=_job(7).id, name="report.json", data=b"{}")
+    store.abandon("o1", _job(7).id)
+    report = SweepReport()
+    delete_abandoned(store, storage, report)
+    assert report.abandoned == [] and store.abandoned() == [("o1", _job(7).id)]
+    storage.down = False
+    delete_abandoned(store, storage, report)
+    assert report.abandoned == [_job(7).id] and store.abandoned() == []
+    assert not storage.job_dir("o1", _job(7).id).exists()
+
+
+class _HangingSweep(DirectoryStorage):
+    """A folder storage whose sweep hangs until released (an S3 endpoint that stopped answering)."""
+
+    def __init__(self, root: Path) -> None:
+        super().__init__(root)
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def sweep_staging(self, older_than_s: float) -> int:
+        self.entered.set()
+        self.release.wait(30)
+        return 0
+
+
+def test_a_hanging_sweep_does_not_stop_the_heartbeat(store: JobStore, redis_url: str, tmp_path: Path) -> None:
+    """While a sweep waits on a storage that does not answer, the worker still beats: it is not taken for dead and
+    its jobs are not taken over."""
+    settings = _settings(redis_url, tmp_path, maintenance_seconds=0.2)  # leases of 1 s
+    storage = _HangingSweep(tmp_path)
+    thread = Maintenance(store=store, storage=storage, celery=make_celery(settings), settings=settings, mode="cpu",
+                         name="w1")  # fmt: skip
+    thread.start()
+    try:
+        assert storage.entered.wait(10)
+        for _ in range(6):  # three leases
+            time.sleep(0.5)
+            assert store.live_workers("cpu", settings.lease_seconds) == 1
+    finally:
+        storage.release.set()
+        thread.stop()
+    assert store.live_workers("cpu", settings.lease_seconds) == 0
 
 
 def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: Path) -> None:
