@@ -14,7 +14,9 @@ Queue = Literal["gpu", "cpu"]
 
 
 class JobError(BaseModel):
-    code: str = Field(description="machine-readable: bad_sh_count, bad_dataset, time_limit, worker_lost, ...")
+    code: str = Field(
+        description="machine-readable: bad_sh_count, bad_dataset, time_limit, worker_lost, storage_unavailable, ..."
+    )
     message: str
 
 

@@ -38,8 +38,8 @@ def make_celery(settings: Settings) -> Celery:
     return app
 
 
-def send_compress(app: Celery, job_id: str, queue: str) -> None:
-    app.send_task(COMPRESS_TASK, args=[job_id], queue=queue, routing_key=queue)
+def send_compress(app: Celery, job_id: str, queue: str, *, countdown: float | None = None) -> None:
+    app.send_task(COMPRESS_TASK, args=[job_id], queue=queue, routing_key=queue, countdown=countdown)
 
 
 app = make_celery(get_settings())

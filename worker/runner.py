@@ -23,7 +23,7 @@ from symgs_core.progress import Eta
 
 from .maintenance import delete_if_requested
 from .settings import Settings
-from .storage import Storage
+from .storage import Storage, StorageError
 from .store import JobRecord, JobStore
 
 if TYPE_CHECKING:
@@ -270,6 +270,8 @@ def failure_of(exc: BaseException) -> tuple[str, str]:
     wrong with what it sent); anything else is ``internal_error``."""
     if isinstance(exc, input_errors()):
         return exc.code, str(exc)  # type: ignore[attr-defined]
+    if isinstance(exc, StorageError):  # its text names the bucket and endpoint: the log keeps it, not the client
+        return "storage_unavailable", "the job's storage stopped answering, on every try; submit the job again"
     return "internal_error", str(exc) or type(exc).__name__
 
 

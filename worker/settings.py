@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     soft_time_limit: int = Field(6 * 3600, gt=0)  # the job fails with code time_limit
     hard_time_limit: int = Field(6 * 3600 + 300, gt=0)  # the worker process is killed
     lease_seconds: float = Field(30.0, gt=0)  # a running job whose worker stayed silent this long is re-queued
-    max_attempts: int = Field(3, ge=1)  # runs of one job before it fails with code worker_lost
+    max_attempts: int = Field(3, ge=1)  # runs of one job before it fails (worker_lost, storage_unavailable)
     maintenance_seconds: float = Field(10.0, gt=0)  # period of the worker's re-queue and expiry sweep
     # Seconds a job may spend running the peers' formats (splat-transform, when installed) on its upload, to draw
     # them in its charts; 0 turns that off.

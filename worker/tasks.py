@@ -9,9 +9,10 @@ import socket
 from celery import Task
 from celery.exceptions import SoftTimeLimitExceeded
 
-from .celery_app import COMPRESS_TASK, app
+from .celery_app import COMPRESS_TASK, app, send_compress
 from .runner import failure_of, input_errors, mark_failed, run_job
-from .settings import get_settings
+from .settings import Settings, get_settings
+from .storage import StorageError
 from .storage_backend import storage_from_settings
 from .store import JobStore
 
@@ -40,7 +41,7 @@ class CompressTask(Task):
             code, message = "time_limit", f"the job ran past the time limit of {get_settings().soft_time_limit} s"
         else:
             code, message = failure_of(exc)
-        if code == "internal_error":
+        if code in ("internal_error", "storage_unavailable"):
             log.error("job %s failed: %s", job_id, einfo)
         settings = get_settings()
         mark_failed(
@@ -54,13 +55,37 @@ class CompressTask(Task):
 def compress_job(self: CompressTask, job_id: str) -> str:
     settings = get_settings()
     queue = (self.request.delivery_info or {}).get("routing_key", "cpu")
-    outcome = run_job(
-        job_id,
-        store=self.store,
-        storage=storage_from_settings(settings),
-        settings=settings,
-        token=_token(self.request.id),
-        device="cuda" if queue == "gpu" else "cpu",
-    )
+    token = _token(self.request.id)
+    outcome: str
+    try:
+        outcome = run_job(
+            job_id,
+            store=self.store,
+            storage=storage_from_settings(settings),
+            settings=settings,
+            token=token,
+            device="cuda" if queue == "gpu" else "cpu",
+        )
+    except StorageError:
+        if not _queue_again(self.store, job_id, token, settings):
+            raise  # on_failure records storage_unavailable
+        outcome = "queued again"
     log.info("job %s: %s", job_id, outcome)
     return outcome
+
+
+def _queue_again(store: JobStore, job_id: str, token: str, settings: Settings) -> bool:
+    """After the storage failed under a run: queue the job again, a lease later, to resume from its last checkpoint
+    (a storage that restarts, a network that drops for a minute), within ``max_attempts`` runs; False past them, or
+    when the client asked to cancel."""
+    record = store.get(job_id)
+    if record is None or record.state != "running" or record.attempts >= settings.max_attempts:
+        return False
+    if store.cancel_requested(job_id) or not store.renew_lease(job_id, token, settings.lease_seconds):
+        return False
+    if store.transition(job_id, "queued", message="the storage stopped answering; queued again") is None:
+        return False
+    store.release_lease(job_id, token)
+    send_compress(app, job_id, record.queue, countdown=settings.lease_seconds)
+    log.warning("job %s: the storage stopped answering; queued again in %s s", job_id, settings.lease_seconds)
+    return True

@@ -302,6 +302,31 @@ def test_a_hanging_sweep_does_not_stop_the_heartbeat(store: JobStore, redis_url:
     assert store.live_workers("cpu", settings.lease_seconds) == 0
 
 
+def test_a_run_the_storage_failed_under_is_queued_again_within_its_attempts(
+    store: JobStore, redis_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A storage that stops answering for a minute fails one run, not the job: it is queued again (to resume from
+    its last checkpoint) until max_attempts runs have failed, and then fails as storage_unavailable."""
+    import worker.tasks
+    from worker.runner import failure_of
+
+    settings = _settings(redis_url, tmp_path)  # max_attempts 2
+    monkeypatch.setattr(worker.tasks, "app", make_celery(settings))  # the tasks' app, on this test's Redis
+    job = _job(1)
+    store.create(job)
+    store.transition(job.id, "running", attempts=1)
+    store.acquire_lease(job.id, "me", 30)
+    assert worker.tasks._queue_again(store, job.id, "me", settings)
+    assert store.get(job.id).state == "queued" and not store.lease_held(job.id)
+    assert store.r.llen("cpu") == 1  # sent again, for a lease from now
+    store.transition(job.id, "running", attempts=2)
+    store.acquire_lease(job.id, "me", 30)
+    assert not worker.tasks._queue_again(store, job.id, "me", settings)  # its last run: failed, not queued
+    assert store.get(job.id).state == "running" and store.r.llen("cpu") == 1
+    code, message = failure_of(StorageError("S3 put failed: http://10.0.0.7:9000 bucket symgs-prod"))
+    assert code == "storage_unavailable" and "http" not in message and "symgs-prod" not in message
+
+
 def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: Path) -> None:
     storage = DirectoryStorage(tmp_path)
     for i in (1, 2):
