@@ -184,7 +184,9 @@ class Maintenance(threading.Thread):
         while True:
             try:
                 sweep(self.store, self.storage, self.celery, self.settings)
-            except Exception:  # noqa: BLE001 - a failed sweep (Redis or the storage away) must not end the thread
+            except (RedisError, StorageError) as exc:  # away for a while: a line a sweep, not a traceback
+                log.warning("maintenance sweep failed (%s: %s); retrying", type(exc).__name__, exc)
+            except Exception:  # noqa: BLE001 - a failed sweep must not end the thread
                 log.exception("maintenance sweep failed; retrying")
             if self._halt.wait(self.settings.maintenance_seconds):
                 break
