@@ -147,6 +147,10 @@ class Storage(ABC):
     def sweep_staging(self, older_than_s: float) -> int:
         """Remove what dead processes left behind (uploads never adopted, local copies of jobs); how many."""
 
+    @abstractmethod
+    def reachable(self) -> bool:
+        """Whether files can be written now (the API's readiness): the folder, or the bucket, answers."""
+
 
 def read_chunks(f: BinaryIO) -> Iterator[bytes]:
     with f:
@@ -237,3 +241,8 @@ class DirectoryStorage(Storage):
 
     def sweep_staging(self, older_than_s: float) -> int:
         return sweep_folders(self.root / "staging", older_than_s)
+
+    def reachable(self) -> bool:
+        # folders are made on first write: the nearest one that exists must take them
+        existing = next(p for p in (self.root, *self.root.parents) if p.exists())
+        return existing.is_dir() and os.access(existing, os.W_OK | os.X_OK)

@@ -203,6 +203,14 @@ class S3Storage(Storage):
             with _s3_errors(f"deleting job {job_id}"):
                 self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": keys[start : start + 1000]})
 
+    def reachable(self) -> bool:
+        try:
+            with _s3_errors("checking the bucket"):
+                self.client.head_bucket(Bucket=self.bucket)
+        except StorageError:
+            return False
+        return True
+
     def sweep_staging(self, older_than_s: float) -> int:
         """Local folders of dead processes, and multipart uploads that a dead process never completed (a bucket
         keeps, and bills, their parts until they are aborted)."""

@@ -175,6 +175,7 @@ def test_health_readiness_and_metrics(api_a: httpx.Client, done_job: dict) -> No
     assert api_a.get("/healthz").json() == {"status": "ok"}
     ready = api_a.get("/readyz")
     assert ready.status_code == 200 and ready.json()["redis"] is True and ready.json()["workers"]["cpu"] >= 1
+    assert ready.json()["storage"] is True
     text = api_a.get("/metrics").text
     assert 'symgs_jobs{state="succeeded"}' in text
     assert 'symgs_queue_depth{queue="cpu"}' in text and 'symgs_workers{mode="cpu"}' in text

@@ -49,6 +49,12 @@ def test_upload_is_adopted_and_results_overwrite(tmp_path: Path) -> None:
     storage.delete(owner=OWNER, job_id=JOB)  # nothing left: no error
 
 
+def test_a_folder_storage_is_reachable_where_its_folders_can_be_made(tmp_path: Path) -> None:
+    assert DirectoryStorage(tmp_path / "not" / "yet").reachable()  # made on first write
+    (tmp_path / "afile").write_bytes(b"")
+    assert not DirectoryStorage(tmp_path / "afile" / "below").reachable()
+
+
 def test_a_failing_disk_is_a_storage_error(tmp_path: Path) -> None:
     """A disk that cannot take or give a file (full, read-only, a folder where a file belongs) fails as StorageError,
     which the API answers with 503 storage_unavailable, and a file is opened before any byte of it is sent."""

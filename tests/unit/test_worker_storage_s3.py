@@ -124,6 +124,11 @@ def test_unfinished_uploads_and_stale_local_copies_are_swept(server: S3Server, t
         server.client().abort_multipart_upload(Bucket=BUCKET, Key=upload["Key"], UploadId=upload["UploadId"])
 
 
+def test_a_bucket_is_reachable_when_it_answers(server: S3Server, tmp_path: Path) -> None:
+    assert _storage(server, tmp_path).reachable()
+    assert not _storage(server, tmp_path, bucket="no-such-bucket").reachable()
+
+
 def test_hostile_object_names_never_leave_the_workspace(server: S3Server, tmp_path: Path) -> None:
     job = "f" * 32
     server.client().put_object(Bucket=BUCKET, Key=f"{PREFIX}/tenants/{OWNER}/jobs/{job}/upload/../../escape", Body=b"x")

@@ -12,7 +12,7 @@ from redis import RedisError
 
 from worker.celery_app import QUEUES
 
-from ..deps import OwnerDep, SettingsDep, StoreDep
+from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep
 from ..errors import error_responses
 
 router = APIRouter(tags=["operations"])
@@ -26,11 +26,14 @@ class Health(BaseModel):
 
 class Readiness(BaseModel):
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"status": "ready", "redis": True, "workers": {"gpu": 0, "cpu": 2}}]}
+        json_schema_extra={
+            "examples": [{"status": "ready", "redis": True, "storage": True, "workers": {"gpu": 0, "cpu": 2}}]
+        }
     )
 
     status: Literal["ready", "not_ready"]
     redis: bool
+    storage: bool
     workers: dict[str, int]
 
 
@@ -43,18 +46,20 @@ def healthz() -> Health:
     "/readyz",
     response_model=Readiness,
     summary="Readiness",
-    description="Ready when Redis answers and at least one worker sent a heartbeat within one lease; 503 otherwise.",
-    responses={503: {"model": Readiness, "description": "Redis or every worker is unreachable"}},
+    description="Ready when Redis and the storage answer and at least one worker sent a heartbeat within one lease; "
+    "503 otherwise.",
+    responses={503: {"model": Readiness, "description": "Redis, the storage or every worker is unreachable"}},
 )
-def readyz(store: StoreDep, settings: SettingsDep) -> JSONResponse:
+def readyz(store: StoreDep, storage: StorageDep, settings: SettingsDep) -> JSONResponse:
     try:
         store.r.ping()
         workers = {mode: store.live_workers(mode, settings.lease_seconds) for mode in QUEUES}
         redis_ok = True
     except RedisError:
         redis_ok, workers = False, {mode: 0 for mode in QUEUES}
-    ready = redis_ok and sum(workers.values()) > 0
-    body = Readiness(status="ready" if ready else "not_ready", redis=redis_ok, workers=workers)
+    storage_ok = storage.reachable()
+    ready = redis_ok and storage_ok and sum(workers.values()) > 0
+    body = Readiness(status="ready" if ready else "not_ready", redis=redis_ok, storage=storage_ok, workers=workers)
     return JSONResponse(body.model_dump(), status_code=200 if ready else 503)
 
 
