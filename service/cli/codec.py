@@ -11,7 +11,16 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
-from .parser import CliError, check_distinct, check_input, check_output, check_seed, error_text, write_output
+from .parser import (
+    CliError,
+    cannot_write,
+    check_distinct,
+    check_input,
+    check_output,
+    check_seed,
+    error_text,
+    write_output,
+)  # fmt: skip
 
 HALF_PLY = ".ply.zst"  # symgs_core.bench.half_ply.EXTENSION, named here without importing torch
 
@@ -140,7 +149,7 @@ def _decompress(args: argparse.Namespace) -> int:
     except ValueError as exc:  # a scene the format cannot hold (e.g. positions beyond .spz's fixed point)
         raise CliError(f"{args.output}: {error_text(exc)}") from exc
     except OSError as exc:  # a full disk, a folder gone
-        raise CliError(f"-o {args.output}: cannot write {exc.filename or args.output}: {exc.strerror or exc}") from None
+        raise cannot_write("-o", args.output, exc) from None
     version = f" v{args.spz_version}" if "version" in fmt.options else ""
     print(f"{args.output}: {fmt.title}{version}, {len(scene)} Gaussians, SH degree {scene.sh_degree}")
     return 0

@@ -8,6 +8,8 @@ import os
 import sys
 from pathlib import Path
 
+from ..files import whole_file
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.py; set before torch loads
 
 # Modules that define `register(subparsers)`; each subcommand sets `func(args) -> int` as its handler.
@@ -80,22 +82,18 @@ def check_distinct(paths: dict[str, Path | None]) -> None:
         seen[key] = f"{option} {path}" if option.startswith("-") else f"the {option}"
 
 
+def cannot_write(option: str, path: Path, exc: OSError) -> CliError:
+    """A write that failed (a full disk, a folder gone), named by the option that asked for it."""
+    return CliError(f"{option} {path}: cannot write {exc.filename or path}: {exc.strerror or exc}")
+
+
 def write_output(option: str, path: Path, data: bytes) -> None:
-    """Write a whole output file, or refuse in one line (a full disk, a folder gone): never half a file under its
-    name, since a reader would take it for a result. A device or pipe (not a regular file) is written directly."""
-    if path.exists() and not path.is_file():
-        partial = path
-    else:
-        partial = path.with_name(f".{path.name}.partial")
+    """Write a whole output file (``whole_file``), or refuse in one line."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial.write_bytes(data)
-        if partial != path:
-            os.replace(partial, path)
+        with whole_file(path) as out:
+            out.write(data)
     except OSError as exc:
-        if partial != path:
-            partial.unlink(missing_ok=True)
-        raise CliError(f"{option} {path}: cannot write {exc.filename or path}: {exc.strerror or exc}") from None
+        raise cannot_write(option, path, exc) from None
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -166,12 +166,12 @@ def _result_folders(scenes: list[Path], labels: list[str], output: Path) -> list
 
 
 def _download(client, job_id: str, folder: Path) -> list[Path]:  # noqa: ANN001 - SymgsClient, imported lazily
-    from .parser import CliError
+    from .parser import cannot_write
 
     try:
         return client.fetch(job_id, folder)
     except OSError as exc:  # a full disk, a folder that cannot be made: named, not a traceback
-        raise CliError(f"-o {folder}: cannot write {exc.filename or folder}: {exc.strerror or exc}") from None
+        raise cannot_write("-o", folder, exc) from None
 
 
 @_api_errors

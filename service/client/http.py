@@ -16,6 +16,8 @@ import httpx
 
 from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
 
+from ..files import whole_file
+
 T = TypeVar("T")
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
 _DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
@@ -248,27 +250,18 @@ class SymgsClient:
         tried again from the start, as ``submit`` tries again."""
         path = _DOWNLOAD_PATHS.get(name, name)
         dest = Path(dest)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        # a device or pipe (not a regular file) is written directly
-        partial = dest if dest.exists() and not dest.is_file() else dest.with_name(f".{dest.name}.partial")
 
         def get() -> Path:
             with self.http.stream("GET", f"/v1/jobs/{job_id}/{path}") as response:
                 if not response.is_success:
                     response.read()
                     _raise_for(response)
-                with open(partial, "wb") as out:
+                with whole_file(dest) as out:
                     for chunk in response.iter_bytes(1 << 20):
                         out.write(chunk)
-            if partial != dest:
-                os.replace(partial, dest)
             return dest
 
-        try:
-            return self._patiently(get)
-        finally:
-            if partial != dest:
-                partial.unlink(missing_ok=True)
+        return self._patiently(get)
 
     def fetch(self, job_id: str, folder: str | os.PathLike[str]) -> list[Path]:
         """Save every result file of a finished job into ``folder``; returns the paths written."""
