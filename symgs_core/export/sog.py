@@ -232,11 +232,25 @@ def write_sog(scene: GaussianScene, *, sh_palette: int | None = None) -> bytes:
 
 
 def save_sog_folder(scene: GaussianScene, meta_path: str | os.PathLike[str], **options: int | None) -> None:
-    """Write the unbundled SOG: ``meta_path`` (a ``meta.json``) and its images beside it."""
+    """Write the unbundled SOG: ``meta_path`` (a ``meta.json``) and its images beside it.
+
+    Every file is written under a temporary name first and only then moved into place, ``meta.json`` last: a write
+    that fails (a full disk) leaves the folder's previous export whole, and a viewer never reads a ``meta.json``
+    that names images not written yet (the reader takes the first ``count`` texels of each, so images of another
+    export beside it would read as a wrong scene, not as an error)."""
     folder = Path(meta_path).parent
     folder.mkdir(parents=True, exist_ok=True)
-    for name, data in sog_files(scene, **options).items():
-        (folder / (Path(meta_path).name if name == META else name)).write_bytes(data)
+    files = sog_files(scene, **options)
+    targets = [folder / (Path(meta_path).name if name == META else name) for name in files]
+    staged = [target.with_name(f".{target.name}.partial") for target in targets]
+    try:
+        for path, data in zip(staged, files.values()):
+            path.write_bytes(data)
+        for path, target in list(zip(staged, targets))[::-1]:  # meta.json is first in ``files``: moved last
+            os.replace(path, target)
+    finally:
+        for path in staged:
+            path.unlink(missing_ok=True)
 
 
 def _texels(files: Mapping[str, bytes], name: str, min_texels: int) -> tuple[np.ndarray, int]:

@@ -7,6 +7,7 @@ import io
 import json
 import math
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from PIL import Image
 
 from symgs_core.export import SogError, export_scene, import_scene, read_sog, sog_files, sog_order, write_sog
 from symgs_core.export.formats import by_path
-from symgs_core.export.sog import CODEBOOK, fit_codebook, read_sog_files, texture_size
+from symgs_core.export.sog import CODEBOOK, fit_codebook, read_sog_files, save_sog_folder, texture_size
 from symgs_core.scene import GaussianScene
 from tests.unit.test_export import same_rotation, scene_for_export
 
@@ -183,3 +184,27 @@ def test_decompress_command_writes_the_sog_folder_and_bundle(tmp_path) -> None: 
     folder = import_scene(tmp_path / "web" / "meta.json")
     assert torch.equal(folder.sh_rest, read_sog((tmp_path / "out.sog").read_bytes()).sh_rest)
     assert len(folder) == 300 and (tmp_path / "web" / "quats.webp").is_file()
+
+
+def test_a_folder_write_that_fails_leaves_the_previous_export_whole(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """Writing over an unbundled SOG (the same export twice) with the disk filling up part way: the folder still
+    holds the previous export, every file as it was, and no temporary file. ``meta.json`` used to be written first,
+    in place: it then named the new scene's count over the old scene's images, which reads as a wrong scene."""
+    meta = tmp_path / "web" / "meta.json"
+    save_sog_folder(on_grids(n=300, degree=2, seed=1), meta)
+    before = {p.name: p.read_bytes() for p in meta.parent.iterdir()}
+    write_bytes, calls = Path.write_bytes, []
+
+    def disk_fills(self: Path, data: bytes) -> int:
+        calls.append(self.name)
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device", str(self))
+        return write_bytes(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", disk_fills)
+    with pytest.raises(OSError, match="No space left"):
+        save_sog_folder(on_grids(n=700, degree=1, seed=2), meta)
+    monkeypatch.undo()
+    assert {p.name: p.read_bytes() for p in meta.parent.iterdir()} == before
+    save_sog_folder(on_grids(n=700, degree=1, seed=2), meta)  # the same write with room succeeds
+    assert len(import_scene(meta)) == 700 and not list(meta.parent.glob(".*"))
