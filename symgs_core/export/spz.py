@@ -56,8 +56,11 @@ def _u8(x: np.ndarray) -> np.ndarray:
 
 
 def _pack_rotations(quats: np.ndarray, version: int) -> np.ndarray:
-    """Unit quaternions [N, 4] (x, y, z, w) in RUB -> packed bytes [N, 3] (v2) or [N, 4] (v3, v4)."""
-    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
+    """Quaternions [N, 4] (x, y, z, w) in RUB -> packed bytes [N, 3] (v2) or [N, 4] (v3, v4) of the unit ones."""
+    norm = np.linalg.norm(quats, axis=1, keepdims=True)
+    # A zero quaternion is the identity, as the PLY reader repairs it and the other exports write it; the smallest
+    # three of (0, 0, 0, 0) would name x as the largest and read back as a half turn about x.
+    q = np.where(norm < 1e-12, np.array([0.0, 0.0, 0.0, 1.0]), quats / np.maximum(norm, 1e-12))
     if version == 2:
         q = q * np.where(q[:, 3:] < 0, -127.5, 127.5) + 127.5
         return _u8(q[:, :3])
