@@ -75,7 +75,9 @@ def write_glb(scene: GaussianScene) -> bytes:
     # A zero quaternion is the identity, as the PLY reader repairs it: the extension asks for unit rotations.
     unit = np.where(norm < 1e-12, np.array([1.0, 0.0, 0.0, 0.0]), t["quats"] / np.maximum(norm, 1e-12))
     q = _turn_quats(unit)
-    opacity = 1.0 / (1.0 + np.exp(-t["opacities"]))
+    with np.errstate(over="ignore"):  # exp of a huge logit or log-scale is inf: an opacity of 0, a scale refused below
+        opacity = 1.0 / (1.0 + np.exp(-t["opacities"]))
+        scale = np.exp(t["scales"])
     k = scene.sh_rest.shape[1]
     rest = t["sh_rest"] * SH_TURN[:k, None]
     colour = np.clip(t["sh_dc"] * C0 + 0.5, 0.0, 1.0)
@@ -84,7 +86,7 @@ def write_glb(scene: GaussianScene) -> bytes:
         ("POSITION", t["means"] * turn, "VEC3"),
         ("COLOR_0", fallback.astype(np.uint8), "VEC4"),
         (f"{EXTENSION}:ROTATION", q[:, [1, 2, 3, 0]], "VEC4"),
-        (f"{EXTENSION}:SCALE", np.exp(t["scales"]), "VEC3"),
+        (f"{EXTENSION}:SCALE", scale, "VEC3"),
         (f"{EXTENSION}:OPACITY", opacity, "SCALAR"),
         (f"{EXTENSION}:SH_DEGREE_0_COEF_0", t["sh_dc"], "VEC3"),
     ]

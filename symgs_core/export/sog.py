@@ -186,7 +186,8 @@ def sog_files(scene: GaussianScene, *, sh_palette: int | None = None) -> dict[st
     q16 = np.clip(np.round((logs - mins) / span * 65535.0), 0, 65535).astype(np.int64)
     scale_book, scale_idx = fit_codebook(t["scales"])
     dc_book, dc_idx = fit_codebook(t["sh_dc"])
-    alpha = _byte(255.0 / (1.0 + np.exp(-t["opacities"])))
+    with np.errstate(over="ignore"):  # exp of a logit below -709 is inf: an alpha of 0, not a warning
+        alpha = _byte(255.0 / (1.0 + np.exp(-t["opacities"])))
     files = {
         "means_l.webp": _webp(_rgba(*(q16 & 255).T), width, height),
         "means_u.webp": _webp(_rgba(*(q16 >> 8).T), width, height),

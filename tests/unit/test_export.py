@@ -6,6 +6,7 @@ from __future__ import annotations
 import gzip
 import math
 import struct
+import warnings
 
 import numpy as np
 import pytest
@@ -22,8 +23,9 @@ from symgs_core.export import (
     write_compressed_ply,
     write_spz,
 )
-from symgs_core.export.formats import by_path
-from symgs_core.ply import load_scene, ply_bytes
+from symgs_core.export.formats import EXPORTS, by_path
+from symgs_core.export.glb import write_glb
+from symgs_core.ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN, load_scene, ply_bytes
 from symgs_core.scene import GaussianScene
 
 C0 = 0.28209479177387814
@@ -307,3 +309,22 @@ def test_spz_writes_a_zero_quaternion_as_the_identity(version: int) -> None:
     assert same_rotation(back.quats[4:5], torch.tensor([[1.0, 0.0, 0.0, 0.0]])).item() >= math.cos(0.01)
     kept = torch.arange(20) != 4
     assert same_rotation(back.quats[kept], scene.quats[kept]).min() >= math.cos(0.1 if version == 2 else 0.003)
+
+
+@pytest.mark.parametrize("extension", [fmt.extension for fmt in EXPORTS])
+def test_every_export_takes_saturated_opacities_and_huge_scales_without_a_warning(extension: str, tmp_path) -> None:  # noqa: ANN001
+    """Logits of +-1000 are opacities of 1 and 0: written as such and read back as the readers' clamp, with no
+    overflow warning on the way (the SOG and glTF writers took exp(1000), which warns, and fails under -W error);
+    a log-scale whose exp overflows is the glTF writer's refusal, not a warning before it."""
+    scene = scene_for_export(n=300, degree=1)
+    opacities = scene.opacities.clamp(-3.0, 3.0)  # inside every reader's clamp
+    opacities[:2] = torch.tensor([1000.0, -1000.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        export_scene(scene.with_(opacities=opacities), tmp_path / f"s{extension}")
+        if extension == ".glb":
+            with pytest.raises(ValueError, match="SCALE overflows float32"):
+                write_glb(scene.with_(scales=scene.scales.index_fill(0, torch.tensor([3]), 1000.0)))
+    back = import_scene(tmp_path / f"s{extension}")
+    extremes = torch.sort(back.opacities).values[[0, -1]]  # SOG and the compressed PLY store their own order
+    assert extremes.tolist() == [OPACITY_LOGIT_MIN, OPACITY_LOGIT_MAX]
