@@ -45,6 +45,28 @@ def scene_for_export(n: int = 1000, degree: int = 3, seed: int = 0, spread: floa
     )
 
 
+EDGE_SCENES = ("one", "identical", "flat_far")
+
+
+def edge_scene(kind: str) -> GaussianScene:
+    """Scenes a web platform's uploads hold that random ones do not: ``one`` Gaussian (SH degree 3); 20
+    ``identical`` ones (degree 1); ``flat_far``, 300 on one plane 3000 units from the origin (degree 2) with
+    unnormalised quaternions, negative w, a zero quaternion and saturated opacities."""
+    if kind == "one":
+        return scene_for_export(n=1, degree=3, seed=11)
+    if kind == "identical":
+        return scene_for_export(n=1, degree=1, seed=12).select(torch.zeros(20, dtype=torch.long))
+    scene = scene_for_export(n=300, degree=2, seed=13, spread=1.0)
+    quats = scene.quats * 1000.0
+    quats[:, 0] = -quats[:, 0].abs()
+    quats[7] = 0.0
+    opacities = scene.opacities.clone()
+    opacities[:4] = torch.tensor([40.0, -40.0, 1000.0, -1000.0])
+    means = scene.means + torch.tensor([-3000.0, 0.0, 0.0])
+    means[:, 2] = 0.25
+    return scene.with_(means=means, quats=quats, opacities=opacities)
+
+
 def same_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """|cos| of the half-angle between rotations [N]: 1 when equal (q and -q are one rotation)."""
     a, b = torch.nn.functional.normalize(a, dim=1), torch.nn.functional.normalize(b, dim=1)

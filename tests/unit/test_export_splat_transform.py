@@ -5,6 +5,8 @@ its files read by ours. Skips, with the reason, without Node.js or when the pack
 
 from __future__ import annotations
 
+import gzip
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ from symgs_core.export import compressed_ply_order, read_compressed_ply, read_sp
 from symgs_core.ply import load_scene, save_scene
 from tests.npm_tools import SPLAT_TRANSFORM_SPZ, convert
 from tests.npm_tools import splat_transform as installed_splat_transform
-from tests.unit.test_export import assert_within_spz_precision, scene_for_export
+from tests.unit.test_export import EDGE_SCENES, assert_within_spz_precision, edge_scene, same_rotation, scene_for_export
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +55,30 @@ def test_splat_transform_decodes_our_compressed_ply_as_our_reader_does(splat_tra
     assert_same_scene(theirs, ours)
     ref = scene.select(compressed_ply_order(scene))
     assert (theirs.means - ref.means).abs().max() < 6.0 / 1023  # 10-11 bits in each chunk's box of side <= 6
+
+
+@pytest.mark.parametrize("kind", EDGE_SCENES)
+def test_splat_transform_decodes_edge_scenes_as_our_readers_do(splat_transform: str, tmp_path: Path, kind: str) -> None:
+    """One Gaussian, identical ones, a flat scene far from the origin with odd quaternions and saturated opacities:
+    their reader and ours agree on every value (opacities: the same byte, each reader's own clamp at 0 and 255), and
+    the `.spz` holds the scene within its step, a zero quaternion as the identity."""
+    scene = edge_scene(kind)
+    for name, write, read in (
+        ("ours.spz", write_spz, read_spz), ("ours.compressed.ply", write_compressed_ply, read_compressed_ply)
+    ):  # fmt: skip
+        (tmp_path / name).write_bytes(write(scene))
+        convert(splat_transform, tmp_path / name, tmp_path / "theirs.ply")
+        theirs, ours = load_scene(tmp_path / "theirs.ply"), read((tmp_path / name).read_bytes())
+        for attribute in ("means", "scales", "sh_dc", "sh_rest"):
+            assert torch.allclose(theirs.tensors()[attribute], ours.tensors()[attribute], atol=1e-5), attribute
+        assert same_rotation(theirs.quats, ours.quats).min() > 1 - 1e-6
+        assert (torch.sigmoid(theirs.opacities) - torch.sigmoid(ours.opacities)).abs().max() <= 1 / 510
+    ours = read_spz((tmp_path / "ours.spz").read_bytes())
+    step = 2.0 ** -gzip.decompress((tmp_path / "ours.spz").read_bytes())[13]
+    assert (ours.means - scene.means).abs().max() <= step / 2 + float(scene.means.abs().max()) * 2**-23  # and float32's
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    unit = torch.where(scene.quats.norm(dim=1, keepdim=True) > 0, scene.quats, identity)
+    assert same_rotation(ours.quats, unit).min() >= math.cos(0.003)
 
 
 def test_our_readers_decode_splat_transform_files(splat_transform: str, tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from symgs_core.ply import load_scene, save_scene
 from symgs_core.scene import GaussianScene
 from symgs_core.synthetic import synthetic_scene
 from tests.npm_tools import GLTF_VALIDATOR, convert, npm_package, splat_transform
-from tests.unit.test_export import same_rotation, scene_for_export
+from tests.unit.test_export import EDGE_SCENES, edge_scene, same_rotation, scene_for_export
 
 FIDELITY_DB = 30.0
 
@@ -55,6 +55,15 @@ def test_splat_transform_decodes_our_sog_as_our_reader_does(tool: str, tmp_path:
         assert_same_decode(load_scene(tmp_path / "theirs.ply"), ours)
 
 
+@pytest.mark.parametrize("kind", EDGE_SCENES)
+def test_splat_transform_decodes_our_edge_scene_sog_as_ours_does(tool: str, tmp_path: Path, kind: str) -> None:
+    """One Gaussian (textures of 4 x 4 for one texel), identical ones (codebooks and palette of one entry), a flat
+    scene far from the origin (an axis of no extent) with odd quaternions and saturated opacities."""
+    (tmp_path / "ours.sog").write_bytes(write_sog(edge_scene(kind)))
+    convert(tool, tmp_path / "ours.sog", tmp_path / "theirs.ply")
+    assert_same_decode(load_scene(tmp_path / "theirs.ply"), read_sog((tmp_path / "ours.sog").read_bytes()))
+
+
 def test_splat_transform_reads_our_sog_at_the_fidelity_of_its_source(tool: str, tmp_path: Path) -> None:
     source = synthetic_scene("global", n=3000, seed=2, sh_degree=3).scene
     (tmp_path / "ours.sog").write_bytes(write_sog(source))
@@ -82,27 +91,34 @@ def test_splat_transform_glb_holds_what_ours_holds(tool: str, tmp_path: Path) ->
 
 
 def test_gltf_validator_finds_nothing_but_the_extension_it_does_not_know(tmp_path: Path) -> None:
+    """A random scene and each edge scene (one Gaussian: bounds of one point; a flat one: an axis of no extent)."""
     modules = npm_package(GLTF_VALIDATOR)
-    (tmp_path / "ours.glb").write_bytes(write_glb(scene_for_export(n=300, degree=3)))
+    scenes = {"random": scene_for_export(n=300, degree=3)} | {kind: edge_scene(kind) for kind in EDGE_SCENES}
+    for name, scene in scenes.items():
+        (tmp_path / f"{name}.glb").write_bytes(write_glb(scene))
     script = (
         f"import {{ validateBytes }} from {json.dumps(str(modules / 'gltf-validator' / 'module.mjs'))};\n"
         "import { readFileSync } from 'node:fs';\n"
-        "const report = await validateBytes(new Uint8Array(readFileSync(process.argv[1])), {maxIssues: 1000});\n"
-        "console.log(JSON.stringify(report));\n"
+        "for (const file of process.argv.slice(1)) {\n"
+        "  const report = await validateBytes(new Uint8Array(readFileSync(file)), {maxIssues: 1000});\n"
+        "  console.log(JSON.stringify(report));\n"
+        "}\n"
     )
     done = subprocess.run(
-        ["node", "--input-type=module", "-e", script, str(tmp_path / "ours.glb")],
+        ["node", "--input-type=module", "-e", script, *(str(tmp_path / f"{name}.glb") for name in scenes)],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    report = json.loads(done.stdout)
-    assert report["info"]["version"] == "2.0" and report["info"]["extensionsUsed"] == ["KHR_gaussian_splatting"]
-    # This validator predates the extension: it names it unsupported and its attribute semantics unknown, and
-    # checks everything else (container, buffers, views, accessors, bounds, POSITION and COLOR_0).
-    for message in report["issues"]["messages"]:
-        known = message["code"] == "UNSUPPORTED_EXTENSION" and "KHR_gaussian_splatting" in message["message"]
-        semantic = message["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and message["pointer"].startswith(
-            "/meshes/0/primitives/0/attributes/KHR_gaussian_splatting:"
-        )
-        assert known or semantic, message
-    assert report["issues"]["numWarnings"] == 0
+    reports = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(reports) == len(scenes)
+    for name, report in zip(scenes, reports):
+        assert report["info"]["version"] == "2.0" and report["info"]["extensionsUsed"] == ["KHR_gaussian_splatting"]
+        # This validator predates the extension: it names it unsupported and its attribute semantics unknown, and
+        # checks everything else (container, buffers, views, accessors, bounds, POSITION and COLOR_0).
+        for message in report["issues"]["messages"]:
+            known = message["code"] == "UNSUPPORTED_EXTENSION" and "KHR_gaussian_splatting" in message["message"]
+            semantic = message["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and message["pointer"].startswith(
+                "/meshes/0/primitives/0/attributes/KHR_gaussian_splatting:"
+            )
+            assert known or semantic, (name, message)
+        assert report["issues"]["numWarnings"] == 0, name
