@@ -11,6 +11,7 @@ another worker can resume it), and removes its copy when the run ends.
 from __future__ import annotations
 
 import io
+import logging
 import os
 import re
 import shutil
@@ -35,6 +36,7 @@ from .storage import (
     sweep_folders,
 )
 
+log = logging.getLogger(__name__)
 _URL = re.compile(r"^s3://(?P<bucket>[a-z0-9][a-z0-9.-]{1,61}[a-z0-9])(?:/(?P<prefix>.*))?$")
 PART_BYTES = 8 << 20  # multipart threshold and part size (S3's minimum part is 5 MiB)
 TRANSFERS = 8  # files moved at once when a job's folder goes up or down
@@ -70,6 +72,32 @@ def make_client() -> Any:  # noqa: ANN401 - botocore's generated S3 client class
     return boto3.session.Session().client("s3", config=config)
 
 
+# Answers of a server that will not take this process's credentials: no retry mends them, an operator must.
+_REFUSED_CREDENTIALS = {"InvalidAccessKeyId", "SignatureDoesNotMatch", "ExpiredToken", "InvalidToken",
+                        "TokenRefreshRequired"}  # fmt: skip
+_REFUSED_ACCESS = {"AccessDenied", "AllAccessDisabled", "AccountProblem", "403"}  # "403": a HEAD's bodiless answer
+
+
+def _refusal(exc: BaseException) -> str | None:
+    """Why the server refused this process, in words an operator can act on; None for an outage or a missing object.
+    Looks through the wrapping of boto3's managed transfers (S3UploadFailedError keeps the ClientError as context)."""
+    from botocore.exceptions import ClientError, NoCredentialsError, PartialCredentialsError
+
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, NoCredentialsError | PartialCredentialsError):
+            return "this process has no complete credentials; set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY"
+        if isinstance(seen, ClientError):
+            code = str(seen.response.get("Error", {}).get("Code", ""))
+            if code in _REFUSED_CREDENTIALS:
+                return f"the storage refused the credentials ({code}); check AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY"
+            if code in _REFUSED_ACCESS:
+                return f"the storage refused access ({code}): wrong credentials, or no permission on the bucket"
+            return None
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
 @contextmanager
 def _s3_errors(what: str) -> Iterator[None]:
     from boto3.exceptions import Boto3Error
@@ -78,13 +106,15 @@ def _s3_errors(what: str) -> Iterator[None]:
     try:
         yield
     except (BotoCoreError, ClientError, Boto3Error) as exc:
-        raise StorageError(f"object storage: {what}: {exc}") from exc
+        refused = _refusal(exc)
+        raise StorageError(f"object storage: {what}: {refused + ': ' if refused else ''}{exc}") from exc
 
 
 def _missing(exc: BaseException | None) -> bool:
     from botocore.exceptions import ClientError
 
-    return isinstance(exc, ClientError) and exc.response.get("Error", {}).get("Code") in ("NoSuchKey", "404")
+    gone = ("NoSuchKey", "NoSuchUpload", "404")
+    return isinstance(exc, ClientError) and exc.response.get("Error", {}).get("Code") in gone
 
 
 def _local(folder: Path, relative: str) -> Path:
@@ -110,6 +140,7 @@ class S3Storage(Storage):
         self.cache = Path(cache)
         self.client = client if client is not None else make_client()
         self.transfer = TransferConfig(multipart_threshold=part_bytes, multipart_chunksize=part_bytes)
+        self._unready: str | None = None  # why the last readiness check failed
 
     @classmethod
     def from_url(cls, url: str, *, cache: Path) -> S3Storage:
@@ -198,17 +229,43 @@ class S3Storage(Storage):
     # -- both -------------------------------------------------------------------------------------------------
 
     def delete(self, *, owner: str, job_id: str) -> None:
-        keys = [{"Key": obj["Key"]} for obj in self._list(self.key(owner, job_id) + "/")]
+        prefix = self.key(owner, job_id) + "/"
+        keys = [{"Key": obj["Key"]} for obj in self._list(prefix)]
         for start in range(0, len(keys), 1000):  # DeleteObjects takes at most 1000 keys
             with _s3_errors(f"deleting job {job_id}"):
                 self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": keys[start : start + 1000]})
+        # A worker killed while a file went up in parts leaves those parts, which no listing of objects shows: a
+        # deleted job must keep none of its bytes, nor wait for the sweep of stale uploads hours later.
+        for upload in self._unfinished(prefix):
+            self._abort(upload)
+
+    def _unfinished(self, prefix: str) -> list[dict]:
+        """Multipart uploads under ``prefix`` that were begun and never completed nor aborted."""
+        with _s3_errors("listing unfinished uploads"):
+            pages = self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket, Prefix=prefix)
+            return [upload for page in pages for upload in page.get("Uploads", ())]
+
+    def _abort(self, upload: dict) -> None:
+        try:
+            with _s3_errors("aborting an unfinished upload"):
+                self.client.abort_multipart_upload(Bucket=self.bucket, Key=upload["Key"], UploadId=upload["UploadId"])
+        except StorageError as exc:
+            if not _missing(exc.__cause__):  # NoSuchUpload: another process aborted or completed it meanwhile
+                raise
 
     def reachable(self) -> bool:
+        # A listing, not a HEAD: its refusal names its reason (a HEAD's answer has no body), and the service lists.
         try:
             with _s3_errors("checking the bucket"):
-                self.client.head_bucket(Bucket=self.bucket)
-        except StorageError:
+                self.client.list_objects_v2(Bucket=self.bucket, Prefix=self.key_root(), MaxKeys=1)
+        except StorageError as exc:
+            if str(exc) != self._unready:  # probed every few seconds: a line when the reason changes, not each time
+                log.error("storage not ready: %s", exc)
+            self._unready = str(exc)
             return False
+        if self._unready is not None:
+            log.warning("storage ready again")
+        self._unready = None
         return True
 
     def sweep_staging(self, older_than_s: float) -> int:
@@ -216,14 +273,10 @@ class S3Storage(Storage):
         keeps, and bills, their parts until they are aborted)."""
         removed = sweep_folders(self.cache / "staging", older_than_s) + sweep_folders(self.cache / "jobs", older_than_s)
         cutoff = datetime.fromtimestamp(time.time() - older_than_s, timezone.utc)
-        with _s3_errors("listing unfinished uploads"):
-            # the service's own uploads only: under the prefix as a folder, in the jobs' layout
-            ours = self.key_root()
-            pages = self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket, Prefix=ours)
-            stale = [u for page in pages for u in page.get("Uploads", ()) if u["Initiated"] < cutoff]
+        # the service's own uploads only: under the prefix as a folder, in the jobs' layout
+        stale = [upload for upload in self._unfinished(self.key_root()) if upload["Initiated"] < cutoff]
         for upload in stale:
-            with _s3_errors("aborting an unfinished upload"):
-                self.client.abort_multipart_upload(Bucket=self.bucket, Key=upload["Key"], UploadId=upload["UploadId"])
+            self._abort(upload)
         return removed + len(stale)
 
 

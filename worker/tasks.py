@@ -66,9 +66,11 @@ def compress_job(self: CompressTask, job_id: str) -> str:
             token=token,
             device="cuda" if queue == "gpu" else "cpu",
         )
-    except StorageError:
+    except StorageError as exc:
         if not _queue_again(self.store, job_id, token, settings):
             raise  # on_failure records storage_unavailable
+        # The operator's log keeps why (an outage, or credentials refused); the job's message, read by clients, not.
+        log.warning("job %s: %s; queued again in %s s", job_id, exc, settings.lease_seconds)
         outcome = "queued again"
     log.info("job %s: %s", job_id, outcome)
     return outcome
@@ -87,5 +89,4 @@ def _queue_again(store: JobStore, job_id: str, token: str, settings: Settings) -
         return False
     store.release_lease(job_id, token)
     send_compress(app, job_id, record.queue, countdown=settings.lease_seconds)
-    log.warning("job %s: the storage stopped answering; queued again in %s s", job_id, settings.lease_seconds)
     return True
