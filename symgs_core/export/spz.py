@@ -17,7 +17,8 @@ Where the writer departs from the reference tool's choices, within the format, t
     positions a step of at most 2^-18 of the scene's extent (a quarter of the balanced preset's starting position
     step), never coarser than 2^-12 and within what 24 bits hold at the scene's reach: the donut's export goes to
     21 bits and 53 dB, for 15% more bytes (BENCHMARKS.md, "Exports"). A scene the 24 bits cannot give 2^10 steps
-    across (smaller than 2^-14, or small and far from the origin) is refused, as one beyond their reach is.
+    across (smaller than 2^-14, or small and far from the origin) is refused, as one beyond their reach is, and so
+    is one whose Gaussians are mostly smaller than the format's smallest scale (``SMALLEST_LOG_SCALE``).
   * SH at 8 bits: the reference rounds degree 1 to 5 bits and higher bands to 4, a step of 1/8 against the archive's
     SH steps of 1/32 or finer: 41 dB on the kacytran scene (SH 3) where 8 bits give 52 dB for 0.5% more bytes, since
     the decoded SH take few distinct values either way. ``sh1_bits``/``sh_rest_bits`` still choose.
@@ -41,6 +42,14 @@ from ..scene import SH_REST_COUNT, GaussianScene
 MAGIC = 0x5053474E
 COLOR_SCALE = 0.15
 VERSIONS = (2, 3, 4)
+# Log-scales are stored from -10 up: an axis below e^-10 is drawn at that size. A thin axis of a larger Gaussian is
+# harmless, but a Gaussian whose largest axis is under ``TINY_FACTOR`` times that is drawn larger and rounder than it
+# is, and a scene of such Gaussians renders as blobs. Generated objects against their own renders, by the share of
+# such Gaussians: 0% at 48.6 and 54.9 dB, 13% at 44.0, 59% at 33.0, all of them at 13.9 to 31.8 dB (the other
+# exports keep 51 to 66 dB). A scene with more than ``MAX_TINY_SHARE`` of them is refused rather than written wrong.
+SMALLEST_LOG_SCALE = -10.0
+TINY_FACTOR = 3.0
+MAX_TINY_SHARE = 0.2
 # Sign of each SH rest coefficient (basis index 1..15) under the RDF -> RUB flip of y and z.
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
 _LEGACY_HEADER = struct.Struct("<IIIBBBB")
@@ -143,6 +152,14 @@ def write_spz(scene: GaussianScene, *, version: int = 3, sh1_bits: int = 8, sh_r
     if 0 < extent * (1 << frac) < 1 << MIN_SPAN_BITS:
         step = 2.0**-frac
         raise ValueError(f"spz: positions spanning {extent:g} do not fit its 24-bit fixed point (a step of {step:g})")
+    below = SMALLEST_LOG_SCALE + math.log(TINY_FACTOR)
+    tiny = float((t["scales"].max(axis=1) < below).mean()) if n else 0.0
+    if tiny > MAX_TINY_SHARE:
+        raise ValueError(
+            f"spz: {tiny:.0%} of the Gaussians are under {TINY_FACTOR:g} times its smallest scale "
+            f"({math.exp(SMALLEST_LOG_SCALE):.2g}) across, so it would draw them larger and rounder than they are; "
+            f"scale the scene up (it spans {extent:g})"
+        )
     fixed = np.round(means * (1 << frac)).astype(np.int64) & 0xFFFFFF
     positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N, 3, 3]
     alphas = _u8(255.0 * (0.5 + 0.5 * np.tanh(0.5 * t["opacities"])))  # the sigmoid, without overflow
