@@ -29,6 +29,9 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
         if not torch.cuda.is_available():
             raise ValueError("no CUDA device is visible to this process; run a cpu worker here")
     settings = get_settings()
+    # A worker the storage refuses would take jobs only to spend their runs failing; an outage, though, may pass.
+    if (refused := storage_from_settings(settings).refused()) is not None:
+        raise ValueError(f"the storage refuses this worker: {refused}")
     name = f"{mode}-{uuid.uuid4().hex[:8]}@{socket.gethostname()}"
     maintenance: list[Maintenance] = []
 

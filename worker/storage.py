@@ -151,6 +151,11 @@ class Storage(ABC):
     def reachable(self) -> bool:
         """Whether files can be written now (the API's readiness): the folder, or the bucket, answers."""
 
+    @abstractmethod
+    def refused(self) -> str | None:
+        """Why this process may not use the storage at all, in words an operator can act on (credentials refused,
+        no permission, no such bucket); None when it may, or when only an outage stops it now."""
+
 
 def read_chunks(f: BinaryIO) -> Iterator[bytes]:
     with f:
@@ -246,3 +251,6 @@ class DirectoryStorage(Storage):
         # folders are made on first write: the nearest one that exists must take them
         existing = next(p for p in (self.root, *self.root.parents) if p.exists())
         return existing.is_dir() and os.access(existing, os.W_OK | os.X_OK)
+
+    def refused(self) -> str | None:
+        return None if self.reachable() else "this process cannot write the storage folder"

@@ -93,6 +93,8 @@ def _refusal(exc: BaseException) -> str | None:
                 return f"the storage refused the credentials ({code}); check AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY"
             if code in _REFUSED_ACCESS:
                 return f"the storage refused access ({code}): wrong credentials, or no permission on the bucket"
+            if code == "NoSuchBucket":
+                return "the bucket does not exist; create it, or check SYMGS_STORAGE"
             return None
         seen = seen.__cause__ or seen.__context__
     return None
@@ -267,6 +269,14 @@ class S3Storage(Storage):
             log.warning("storage ready again")
         self._unready = None
         return True
+
+    def refused(self) -> str | None:
+        try:
+            with _s3_errors("checking the bucket"):
+                self.client.list_objects_v2(Bucket=self.bucket, Prefix=self.key_root(), MaxKeys=1)
+        except StorageError as exc:
+            return _refusal(exc)
+        return None
 
     def sweep_staging(self, older_than_s: float) -> int:
         """Local folders of dead processes, and multipart uploads that a dead process never completed (a bucket

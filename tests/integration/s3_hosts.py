@@ -67,21 +67,34 @@ def s3_service(tmp_root: Path, env: dict[str, str] | None = None) -> Iterator[S3
         stack.cleanup()
 
 
-def enforce_credentials(server: S3Server) -> dict[str, str]:
-    """Make the S3 server check every request's signature, as a real one does, against an access key made here
-    through its IAM API (with every S3 permission); the AWS settings of that key. moto accepts any credentials
-    until its count of unauthenticated requests is reset to 0 (its ``/moto-api/reset-auth``, the server-mode form
-    of ``INITIAL_NO_AUTH_ACTION_COUNT``)."""
+def enforce_credentials(server: S3Server) -> tuple[dict[str, str], dict[str, str]]:
+    """Make the S3 server check every request's signature, as a real one does, against two access keys made here
+    through its IAM API: the AWS settings of each. The first may use S3 and delete the second, so a test can revoke
+    a key a running process holds. moto accepts any credentials until its count of unauthenticated requests is
+    reset to 0 (its ``/moto-api/reset-auth``, the server-mode form of ``INITIAL_NO_AUTH_ACTION_COUNT``)."""
     import boto3
 
     iam = boto3.client("iam", endpoint_url=server.endpoint, region_name=REGION,
                        aws_access_key_id="setup", aws_secret_access_key="setup")  # fmt: skip
-    iam.create_user(UserName="symgs")
-    policy = {"Version": "2012-10-17", "Statement": [{"Effect": "Allow", "Action": "s3:*", "Resource": "*"}]}
-    iam.put_user_policy(UserName="symgs", PolicyName="s3", PolicyDocument=json.dumps(policy))
-    key = iam.create_access_key(UserName="symgs")["AccessKey"]
+    keys = []
+    for user, actions in (("symgs", ["s3:*", "iam:DeleteAccessKey"]), ("revocable", ["s3:*"])):
+        iam.create_user(UserName=user)
+        policy = {"Version": "2012-10-17", "Statement": [{"Effect": "Allow", "Action": actions, "Resource": "*"}]}
+        iam.put_user_policy(UserName=user, PolicyName="s3", PolicyDocument=json.dumps(policy))
+        key = iam.create_access_key(UserName=user)["AccessKey"]
+        keys.append({"AWS_ACCESS_KEY_ID": key["AccessKeyId"], "AWS_SECRET_ACCESS_KEY": key["SecretAccessKey"]})
     httpx.post(f"{server.endpoint}/moto-api/reset-auth", content=b"0", timeout=10).raise_for_status()
-    return {"AWS_ACCESS_KEY_ID": key["AccessKeyId"], "AWS_SECRET_ACCESS_KEY": key["SecretAccessKey"]}
+    return keys[0], keys[1]
+
+
+def revoke(server: S3Server, credentials: dict[str, str], revocable: dict[str, str]) -> None:
+    """Delete the access key ``revocable`` (of ``enforce_credentials``), as an operator rotating keys would."""
+    import boto3
+
+    iam = boto3.client("iam", endpoint_url=server.endpoint, region_name=REGION,
+                       aws_access_key_id=credentials["AWS_ACCESS_KEY_ID"],
+                       aws_secret_access_key=credentials["AWS_SECRET_ACCESS_KEY"])  # fmt: skip
+    iam.delete_access_key(UserName="revocable", AccessKeyId=revocable["AWS_ACCESS_KEY_ID"])
 
 
 def s3_client(server: S3Server, credentials: dict[str, str]) -> Any:  # noqa: ANN401 - botocore's S3 client

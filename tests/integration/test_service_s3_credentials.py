@@ -1,7 +1,8 @@
 """Credentials the object storage refuses (an S3 server that checks signatures, as every real one does): the API
 answers 503 storage_unavailable without naming the key, secret, endpoint or bucket, reports its storage not ready and
-logs that the credentials were refused; a worker fails the job cleanly as storage_unavailable once its runs are
-spent, and goes on living."""
+logs that the credentials were refused. A worker whose credentials are refused does not start, and says why; one whose
+key is revoked while it runs fails the job cleanly as storage_unavailable once its runs are spent, and goes on
+living."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.cli.stack import StackError
 from tests.integration.conftest import KEY_A, TINY, finished, read_sse, submit, wait_for
-from tests.integration.s3_hosts import PREFIX, S3Service, enforce_credentials, s3_service
+from tests.integration.s3_hosts import PREFIX, S3Service, enforce_credentials, revoke, s3_service
 from tests.s3_server import BUCKET
 
 WRONG_SECRET = "wr0ng-secret-of-the-api-4c1d"
@@ -21,12 +23,12 @@ UNKNOWN_KEY = {"AWS_ACCESS_KEY_ID": "AKIAUNKNOWNUNKNOWN42", "AWS_SECRET_ACCESS_K
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[S3Service, dict[str, str]]]:
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[S3Service, dict[str, str], dict[str, str]]]:
     # Two runs a job: a worker whose credentials are refused fails it within seconds.
     with s3_service(tmp_path_factory.mktemp("hosts"), env={"SYMGS_MAX_ATTEMPTS": "2"}) as running:
-        credentials = enforce_credentials(running.server)
+        credentials, revocable = enforce_credentials(running.server)
         running.stack.env.update(credentials)
-        yield running, credentials
+        yield running, credentials, revocable
 
 
 def _leaks(text: str, credentials: dict[str, str], endpoint: str) -> list[str]:
@@ -37,9 +39,9 @@ def _leaks(text: str, credentials: dict[str, str], endpoint: str) -> list[str]:
 
 
 def test_an_api_whose_credentials_are_refused_answers_503_and_says_why_in_its_log(
-    service: tuple[S3Service, dict[str, str]], scene_path: Path
+    service: tuple[S3Service, dict[str, str], dict[str, str]], scene_path: Path
 ) -> None:
-    running, credentials = service
+    running, credentials, _ = service
     good_url = running.start_api("api")
     running.start_worker("worker")
     with httpx.Client(base_url=good_url, headers={"Authorization": f"Bearer {KEY_A}"}, timeout=60) as good:
@@ -77,15 +79,31 @@ def test_an_api_whose_credentials_are_refused_answers_503_and_says_why_in_its_lo
     assert WRONG_SECRET not in text and credentials["AWS_SECRET_ACCESS_KEY"] not in text
 
 
-def test_a_worker_whose_credentials_are_refused_fails_the_job_cleanly(
-    service: tuple[S3Service, dict[str, str]], scene_path: Path
+def test_a_worker_whose_credentials_are_refused_does_not_start(
+    service: tuple[S3Service, dict[str, str], dict[str, str]],
 ) -> None:
-    running, credentials = service
+    """It would take jobs only to spend their runs failing (on several hosts, one misconfigured worker would fail
+    many); it exits with the reason instead, and the operator's restart policy shows it."""
+    running, credentials, _ = service
+    with pytest.raises(StackError, match="exited with status 2"):
+        running.start_worker("worker-unknown-key", env=UNKNOWN_KEY)
+    worker = running.stack.workers.pop()
+    text = worker.log.read_text(errors="replace")
+    assert "the storage refuses this worker: the storage refused the credentials (InvalidAccessKeyId)" in text, text
+    assert "Traceback" not in text, text
+    assert UNKNOWN_KEY["AWS_SECRET_ACCESS_KEY"] not in text and credentials["AWS_SECRET_ACCESS_KEY"] not in text
+
+
+def test_a_worker_whose_key_is_revoked_fails_the_job_cleanly(
+    service: tuple[S3Service, dict[str, str], dict[str, str]], scene_path: Path
+) -> None:
+    running, credentials, revocable = service
     for worker in list(running.stack.workers):
         worker.stop()
         running.stack.workers.remove(worker)
     api_url = running.start_api("api-for-worker")
-    worker = running.start_worker("worker-unknown-key", env=UNKNOWN_KEY)
+    worker = running.start_worker("worker-revoked-key", env=revocable)
+    revoke(running.server, credentials, revocable)
     with httpx.Client(base_url=api_url, headers={"Authorization": f"Bearer {KEY_A}"}, timeout=60) as api:
         response = submit(api, scene_path, TINY)
         assert response.status_code == 202, response.text
@@ -93,7 +111,8 @@ def test_a_worker_whose_credentials_are_refused_fails_the_job_cleanly(
         assert job["state"] == "failed", job
         assert job["error"]["code"] == "storage_unavailable", job
         assert job["attempts"] == 2, job
-        assert not _leaks(json.dumps(job), credentials, running.server.endpoint), job
+        leaked = _leaks(json.dumps(job), credentials, running.server.endpoint)
+        assert not leaked and revocable["AWS_SECRET_ACCESS_KEY"] not in json.dumps(job), job
         with api.stream("GET", f"/v1/jobs/{job['id']}/events") as events:
             states = [json.loads(m["data"])["state"] for m in read_sse(events) if m.get("event") == "state"]
         assert states == ["queued", "running", "queued", "running", "failed"], states
@@ -101,4 +120,4 @@ def test_a_worker_whose_credentials_are_refused_fails_the_job_cleanly(
     assert worker.alive()
     text = worker.log.read_text(errors="replace")
     assert "refused the credentials" in text and "InvalidAccessKeyId" in text, text
-    assert UNKNOWN_KEY["AWS_SECRET_ACCESS_KEY"] not in text
+    assert revocable["AWS_SECRET_ACCESS_KEY"] not in text

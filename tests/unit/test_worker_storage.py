@@ -53,6 +53,9 @@ def test_a_folder_storage_is_reachable_where_its_folders_can_be_made(tmp_path: P
     assert DirectoryStorage(tmp_path / "not" / "yet").reachable()  # made on first write
     (tmp_path / "afile").write_bytes(b"")
     assert not DirectoryStorage(tmp_path / "afile" / "below").reachable()
+    # A worker checks this before it takes jobs, and does not start where it would fail every one.
+    assert DirectoryStorage(tmp_path / "not" / "yet").refused() is None
+    assert DirectoryStorage(tmp_path / "afile" / "below").refused() == "this process cannot write the storage folder"
 
 
 def test_a_failing_disk_is_a_storage_error(tmp_path: Path) -> None:

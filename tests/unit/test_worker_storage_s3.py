@@ -127,6 +127,21 @@ def test_unfinished_uploads_and_stale_local_copies_are_swept(server: S3Server, t
 def test_a_bucket_is_reachable_when_it_answers(server: S3Server, tmp_path: Path) -> None:
     assert _storage(server, tmp_path).reachable()
     assert not _storage(server, tmp_path, bucket="no-such-bucket").reachable()
+    # A worker does not start where the bucket is missing (a configuration an operator must mend); an outage, which
+    # may pass, does not keep it from starting.
+    assert _storage(server, tmp_path).refused() is None
+    assert _storage(server, tmp_path, bucket="no-such-bucket").refused() == (
+        "the bucket does not exist; create it, or check SYMGS_STORAGE"
+    )
+    import boto3
+    from botocore.config import Config
+
+    from service.cli.stack import free_port
+
+    nobody = boto3.session.Session(aws_access_key_id="k", aws_secret_access_key="s", region_name="us-east-1").client(
+        "s3", endpoint_url=f"http://127.0.0.1:{free_port()}", config=Config(retries={"max_attempts": 1})
+    )
+    assert S3Storage(BUCKET, PREFIX, cache=tmp_path, client=nobody).refused() is None
 
 
 def test_hostile_object_names_never_leave_the_workspace(server: S3Server, tmp_path: Path) -> None:
