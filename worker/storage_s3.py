@@ -255,15 +255,21 @@ class S3Storage(Storage):
             if not _missing(exc.__cause__):  # NoSuchUpload: another process aborted or completed it meanwhile
                 raise
 
-    def reachable(self) -> bool:
-        # A listing, not a HEAD: its refusal names its reason (a HEAD's answer has no body), and the service lists.
+    def _probe(self) -> StorageError | None:
+        """What a one-key listing of the service's objects fails with, None when it answers. A listing, not a HEAD:
+        its refusal names its reason (a HEAD's answer has no body), and the service lists."""
         try:
             with _s3_errors("checking the bucket"):
                 self.client.list_objects_v2(Bucket=self.bucket, Prefix=self.key_root(), MaxKeys=1)
         except StorageError as exc:
-            if str(exc) != self._unready:  # probed every few seconds: a line when the reason changes, not each time
-                log.error("storage not ready: %s", exc)
-            self._unready = str(exc)
+            return exc
+        return None
+
+    def reachable(self) -> bool:
+        if (failed := self._probe()) is not None:
+            if str(failed) != self._unready:  # probed every few seconds: a line when the reason changes, not each time
+                log.error("storage not ready: %s", failed)
+            self._unready = str(failed)
             return False
         if self._unready is not None:
             log.warning("storage ready again")
@@ -271,12 +277,8 @@ class S3Storage(Storage):
         return True
 
     def refused(self) -> str | None:
-        try:
-            with _s3_errors("checking the bucket"):
-                self.client.list_objects_v2(Bucket=self.bucket, Prefix=self.key_root(), MaxKeys=1)
-        except StorageError as exc:
-            return _refusal(exc)
-        return None
+        failed = self._probe()
+        return None if failed is None else _refusal(failed)
 
     def sweep_staging(self, older_than_s: float) -> int:
         """Local folders of dead processes, and multipart uploads that a dead process never completed (a bucket
