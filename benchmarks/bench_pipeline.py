@@ -62,23 +62,8 @@ def _row(name: str, on, off, wall_on: float, wall_off: float) -> str:  # noqa: A
     )
 
 
-def trained(folder: Path, ply: Path, args: argparse.Namespace) -> Path:
-    """The scene trained on ``folder``'s training photographs, at ``ply``: trained once, then read from there."""
-    from symgs_core.bench.capture import train_capture
-    from symgs_core.ply import save_scene
-
-    if not ply.is_file():
-        t0 = time.perf_counter()
-        scene = train_capture(folder, rounds=args.train_rounds, iterations=args.train_iterations,
-                              say=lambda m: print(f"{folder.name}: {m}", flush=True))  # fmt: skip
-        ply.parent.mkdir(parents=True, exist_ok=True)
-        save_scene(scene, ply)
-        print(f"{folder.name}: trained {len(scene):,} Gaussians in {time.perf_counter() - t0:.0f} s\n", flush=True)
-    return ply
-
-
 def main() -> None:
-    from symgs_core.bench.capture import ITERATIONS, ROUNDS
+    from symgs_core.bench.capture import ITERATIONS, ROUNDS, cached_capture
     from symgs_core.config import PRESET_NAMES, CompressConfig
     from symgs_core.pipeline import compress
     from symgs_core.synthetic import synthetic_scene
@@ -141,7 +126,9 @@ def main() -> None:
     jobs += [(p.name, p, images) for p, images in zip(args.scenes, args.images or [None] * len(args.scenes))]
     for folder in args.captures:
         ply = args.work / folder.name / f"trained-{args.train_rounds}x{args.train_iterations}.ply"
-        jobs.append((f"{folder.name} (trained: {ply.name})", trained(folder, ply, args), folder))
+        cached_capture(folder, ply, rounds=args.train_rounds, iterations=args.train_iterations,
+                       say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
+        jobs.append((f"{folder.name} (trained: {ply.name})", ply, folder))
     print(f"config: {config}\n")
     print("| scene | levels | input | stored | no mirrors B | mirrors B | gain | PSNR dB without (full / object) | "
           "PSNR dB with (full / object) | floor dB | levels tried, fitting PSNR before->after | s without | s with |")

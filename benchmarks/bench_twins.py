@@ -25,6 +25,15 @@ and opacity) with the paired Gaussians' own colours, and the paired Gaussians' o
 reflected colours. Where both stay far below the floor, neither a mirror that stores colours per copy nor one that
 stores geometry per copy would come near it.
 
+``--truth``: the same reflections scored against what the scene shows, not against the scene itself, where
+photographs of it exist: a generated upload with photographs of its symmetric truth (``symgs_core.bench.photos``) and
+the scenes trained from ``--captures`` folders (``symgs_core.bench.capture``, cached under ``--work``). On each
+capture's test photographs, which trained nothing, the input, the paired Gaussians replaced by their partners'
+reflections and the same Gaussians left out are rendered against the photographs, and against the input's own renders
+from the same cameras. Two independent reconstructions of one symmetric surface differ from each other by about both
+their errors, so a reflection can stand in for the half it replaces as well as that half did against the truth and
+still score low against the input's renders: the reference of a scene without photographs.
+
     python benchmarks/bench_twins.py ../shared/data/fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply --synthetic
 """
 
@@ -33,6 +42,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -42,6 +52,8 @@ GROUPS = {"positions": ("means",), "shape": ("scales", "quats"), "opacity": ("op
 # Steps a near twin's symbols may differ from its partner's: a few times the codec's rounding, far below what a
 # fine-tune would have to move.
 NEAR = 8
+TEST_PHOTOS = 8  # as bench_pipeline scores captures
+TRUTH_N = 20_000  # the generated upload of --truth, as bench_pipeline --photos makes it
 
 
 def pairs(dropped: np.ndarray, mirrored: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,45 +109,120 @@ def mixed(geometry, colour):  # noqa: ANN001, ANN201 - GaussianScene
     return dataclasses.replace(geometry, sh_dc=colour.sh_dc, sh_rest=colour.sh_rest)
 
 
-def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
-    from symgs_core.codec.entropy import encode_table
+@dataclasses.dataclass
+class Halves:
+    """The first mirror's pairs: ``scene`` in canonical frames; ``mine`` indexes the ``dropped`` half, ``theirs`` the
+    reflected kept half ``mirrored``, pair by pair; ``others`` are the Gaussians no pair holds."""
+
+    scene: Any
+    dropped: Any
+    mirrored: Any
+    mine: torch.Tensor
+    theirs: torch.Tensor
+    others: Any
+
+    @property
+    def paired(self):  # noqa: ANN201 - GaussianScene
+        return self.dropped.select(self.mine)
+
+    @property
+    def partners(self):  # noqa: ANN201 - GaussianScene
+        return self.mirrored.select(self.theirs)
+
+
+def halves(scene) -> Halves | None:  # noqa: ANN001 - GaussianScene
+    """``scene``'s first mirror, its dropped half paired with the reflected kept half; None without a mirror."""
     from symgs_core.codec.frames import canonical_frames
-    from symgs_core.codec.steps import QuantSteps
     from symgs_core.detect import DetectConfig, detect
     from symgs_core.mirror import reflect
-    from symgs_core.pipeline.budget import extent_of
-    from symgs_core.scene import GaussianScene
 
     found = detect(scene, DetectConfig(max_mirrors=1))
     if not found:
-        return {"paired": 0}
+        return None
     mirror = found[0]
     scene = canonical_frames(scene)
-    steps = QuantSteps()
-    extent = extent_of(scene)
-    codecs = steps.codecs(extent)
     normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
-    kept, dropped = scene.select(mirror.left), scene.select(mirror.right)
-    mirrored = canonical_frames(reflect(kept, normal, mirror.plane.offset))
-    mine, theirs = pairs(dropped.means.numpy(), mirrored.means.numpy())
-    twins = mirror.right[torch.from_numpy(mine)]
+    dropped = scene.select(mirror.right)
+    mirrored = canonical_frames(reflect(scene.select(mirror.left), normal, mirror.plane.offset))
+    mine, theirs = (torch.from_numpy(i) for i in pairs(dropped.means.numpy(), mirrored.means.numpy()))
     rest = torch.ones(len(scene), dtype=torch.bool)
-    rest[twins] = False
-    own = symbols(dropped.select(torch.from_numpy(mine)), steps, extent)
-    partner = symbols(mirrored.select(torch.from_numpy(theirs)), steps, extent)
-    others = scene.select(torch.nonzero(rest).flatten())
-    whole = section_bytes(scene, codecs, own)
-    without = section_bytes(others, codecs, own)
-    row = {"gaussians": len(scene), "paired": len(mine)}
+    rest[mirror.right[mine]] = False
+    return Halves(scene, dropped, mirrored, mine, theirs, scene.select(torch.nonzero(rest).flatten()))
+
+
+def measure(scene) -> dict:  # noqa: ANN001 - GaussianScene
+    from symgs_core.codec.entropy import encode_table
+    from symgs_core.codec.steps import QuantSteps
+    from symgs_core.pipeline.budget import extent_of
+    from symgs_core.scene import GaussianScene
+
+    h = halves(scene)
+    if h is None:
+        return {"paired": 0}
+    steps = QuantSteps()
+    extent = extent_of(h.scene)
+    codecs = steps.codecs(extent)
+    own = symbols(h.paired, steps, extent)
+    partner = symbols(h.partners, steps, extent)
+    whole = section_bytes(h.scene, codecs, own)
+    without = section_bytes(h.others, codecs, own)
+    row = {"gaussians": len(h.scene), "paired": len(h.mine)}
     row["near"] = int(np.logical_and.reduce([(np.abs(own[k] - partner[k]) <= NEAR).all(axis=1) for k in own]).sum())
-    partners, paired = mirrored.select(torch.from_numpy(theirs)), dropped.select(torch.from_numpy(mine))
-    variants = [partners, mixed(partners, paired), mixed(paired, partners)]
-    row["psnr"] = fitting_psnr(scene, [GaussianScene.cat([others, v]) for v in variants] + [others])
+    variants = [h.partners, mixed(h.partners, h.paired), mixed(h.paired, h.partners)]
+    row["psnr"] = fitting_psnr(h.scene, [GaussianScene.cat([h.others, v]) for v in variants] + [h.others])
     for group, names in GROUPS.items():
         names = [n for n in names if n in own]  # SH degree 0: no higher bands
         row[group] = (sum(whole[n] - without[n] for n in names),
                       sum(len(encode_table(own[n] - partner[n])) for n in names))  # fmt: skip
     return row
+
+
+def against_truth(scene, photographs: Path) -> dict | None:  # noqa: ANN001 - GaussianScene
+    """Full-frame PSNR on the test photographs of the folder ``photographs`` (at the resolution the captures train
+    at, on black as they train): the input, the paired Gaussians replaced by reflections, and left out, against the
+    photographs; the last two also against the input's renders from the same cameras."""
+    from symgs_core.bench.capture import RESOLUTION
+    from symgs_core.render import render
+    from symgs_core.scene import GaussianScene
+    from symgs_core.views import View, dataset_eval_views, evaluate
+
+    h = halves(scene)
+    if h is None:
+        return None
+    background = torch.zeros(3)
+    photos = dataset_eval_views(photographs, h.scene, eval=TEST_PHOTOS, resolution=RESOLUTION, background=background)
+    with torch.no_grad():
+        renders = [View(v.camera, render(h.scene, v.camera, background).image, v.mask) for v in photos]
+    replaced = GaussianScene.cat([h.others, h.partners])
+    psnr = lambda s, views: evaluate(s, views, background, with_ssim=False).psnr  # noqa: E731
+    return {"gaussians": len(h.scene), "paired": len(h.mine),
+            "photos": [psnr(s, photos) for s in (h.scene, replaced, h.others)],
+            "renders": [psnr(s, renders) for s in (replaced, h.others)]}  # fmt: skip
+
+
+def truth_table(args: argparse.Namespace) -> None:
+    from symgs_core.bench.capture import ITERATIONS, RESOLUTION, ROUNDS, cached_capture
+    from symgs_core.bench.photos import photographed
+    from symgs_core.ply import load_scene
+
+    kind = "global"
+    jobs = [(f"synthetic {kind} (independent, n={TRUTH_N}, SH 1), photographs of its twin truth",
+             lambda: photographed(kind, args.work / kind, n=TRUTH_N, photos=2, tests=TEST_PHOTOS,
+                                  resolution=RESOLUTION), args.work / kind)]  # fmt: skip
+    for folder in args.captures:
+        ply = cached_capture(folder, args.work / folder.name / f"trained-{ROUNDS}x{ITERATIONS}.ply",
+                             say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
+        jobs.append((f"{folder.name} (trained: {ply.name})", lambda p=ply: load_scene(p), folder))
+    print("| scene | Gaussians | dropped half, paired | test photographs: input / paired replaced by reflections / "
+          "left out (dB) | the input's renders, same cameras: replaced / left out (dB) |")
+    print("|---|---:|---:|---:|---:|")
+    for name, load, folder in jobs:
+        row = against_truth(load(), folder)
+        if row is None:
+            print(f"| {name} | - | no mirror found | | |")
+            continue
+        cells = [" / ".join(f"{p:.2f}" for p in row[k]) for k in ("photos", "renders")]
+        print(f"| {name} | {row['gaussians']:,} | {row['paired']:,} | {cells[0]} | {cells[1]} |", flush=True)
 
 
 def main() -> None:
@@ -147,8 +234,16 @@ def main() -> None:
     parser.add_argument("--synthetic", action="store_true",
                         help="also generated scenes: exact twins and independent halves")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--truth", action="store_true",
+                        help="score the reflections against photographs instead: a generated upload and --captures")
+    parser.add_argument("--captures", nargs="*", default=[], type=Path, help="capture folders, with --truth")
+    parser.add_argument("--work", type=Path, default=Path("bench-out/twins"),
+                        help="where --truth writes its photographs and trained scenes")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.truth:
+        truth_table(args)
+        return
     jobs = [(p.name, lambda p=p: load_scene(p)) for p in args.scenes]
     if args.synthetic:
         for capture in ("twins", "independent"):

@@ -131,6 +131,10 @@ BENCHES: tuple[Bench, ...] = (
           estimate="about 40 minutes"),
     Bench("twins", ("benchmarks/bench_twins.py", "{scenes}", "--synthetic"), None, ("twins",), scenes=REAL,
           env=PASSIVE),
+    # The lego scene trained for pipeline-capture: one scene scored by both (trained here when absent).
+    Bench("twins-truth", ("benchmarks/bench_twins.py", "--truth", "--captures", "{data}/" + LEGO, "--work",
+                          "bench-out/pipeline-capture"),
+          None, ("twins-truth",), data=True, env=PASSIVE),
     Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
                                "--work", "{out}"),
           None, ("pipeline-capture",), data=True, env=PASSIVE, estimate="about 30 minutes"),

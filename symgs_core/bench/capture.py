@@ -15,6 +15,7 @@ reconstructions, as in any upload.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -36,6 +37,7 @@ START_OPACITY = 0.1
 DROP_OPACITY = 0.005  # below this a Gaussian is relocated between rounds
 # The benchmarks' training (``bench_pipeline --captures``): 3,000 Adam steps in all, the set grown by half each round.
 ROUNDS, ITERATIONS = 5, 600
+RESOLUTION = 256  # px, the photographs' longest side in training
 Say = Callable[[str], None]
 
 
@@ -111,7 +113,7 @@ def grown(scene: GaussianScene, share: float, generator: torch.Generator) -> Gau
 def train_capture(
     folder: str | Path,
     *,
-    resolution: int = 256,
+    resolution: int = RESOLUTION,
     rounds: int = ROUNDS,
     iterations: int = ITERATIONS,
     growth: float = 0.5,
@@ -143,3 +145,21 @@ def train_capture(
         scene = state.stored
         say(f"round {r + 1}/{rounds}: {len(scene):,} Gaussians")
     return scene
+
+
+def cached_capture(
+    folder: str | Path, ply: str | Path, *, rounds: int = ROUNDS, iterations: int = ITERATIONS, say: Say | None = None
+) -> Path:
+    """``train_capture(folder)`` saved at ``ply``: trained on the first call, read from there on later ones (training
+    takes minutes, and benchmarks of one capture should score one scene)."""
+    from ..ply import save_scene
+
+    ply = Path(ply)
+    if not ply.is_file():
+        say = say or (lambda message: None)
+        t0 = time.perf_counter()
+        scene = train_capture(folder, rounds=rounds, iterations=iterations, say=say)
+        ply.parent.mkdir(parents=True, exist_ok=True)
+        save_scene(scene, ply)
+        say(f"trained {len(scene):,} Gaussians in {time.perf_counter() - t0:.0f} s")
+    return ply
