@@ -134,7 +134,7 @@ BENCHES: tuple[Bench, ...] = (
     # The lego scene trained for pipeline-capture: one scene scored by both (trained here when absent).
     Bench("twins-truth", ("benchmarks/bench_twins.py", "--truth", "--captures", "{data}/" + LEGO, "--work",
                           "bench-out/pipeline-capture"),
-          None, ("twins-truth",), data=True, env=PASSIVE, estimate="about 30 minutes untrained"),
+          None, ("twins-truth",), data=True, env=PASSIVE, estimate="about 30 minutes the first time"),
     Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
                                "--work", "{out}"),
           None, ("pipeline-capture",), data=True, env=PASSIVE, estimate="about 30 minutes"),
