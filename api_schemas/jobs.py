@@ -42,6 +42,8 @@ class JobMetrics(BaseModel):
     psnr_object: float | None = Field(None, description="dB on the evaluation cameras, the object's own pixels")
     ssim: float | None
     seconds: float = Field(description="pipeline time, all stages")
+    notes: list[str] = Field(default_factory=list,
+                             description="what the user could do for a better result (the report's notes)")
 
 
 class JobLinks(BaseModel):

@@ -148,3 +148,5 @@ class Report(BaseModel):
     seconds: dict[str, float] = Field(description="per stage")
     device: str
     config: ReportConfig
+    notes: list[str] = Field(default_factory=list,
+                             description="what the user could do for a better result (send the photographs, ...)")

@@ -137,6 +137,7 @@ class Report:
     seconds: dict[str, float]  # per stage
     device: str
     config: CompressConfig
+    notes: tuple[str, ...] = ()  # what the user could do for a better result (send the photographs, ...)
 
     @property
     def accepted_levels(self) -> list[LevelReport]:

@@ -129,7 +129,7 @@ def headline(report: Report) -> tuple[list[MirrorSummary], JobMetrics]:
         input_bytes=report.input_bytes, output_bytes=report.output_bytes, ratio_to_ply=report.ratio_to_ply or 0.0,
         ratio_to_baseline=report.ratio_to_baseline, psnr=finite(report.fidelity.psnr),
         psnr_object=finite(report.fidelity.psnr_object), ssim=report.fidelity.ssim,
-        seconds=float(sum(report.seconds.values())),
+        seconds=float(sum(report.seconds.values())), notes=list(report.notes),
     )  # fmt: skip
     return mirrors, metrics
 

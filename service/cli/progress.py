@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import threading
 
-from rich.console import Console
+from rich.console import Console, Group
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 from api_schemas import Job, JobEvent
 from symgs_core.progress import format_seconds
@@ -69,7 +70,8 @@ def follow(client: SymgsClient, jobs: dict[str, str], console: Console) -> dict[
     return finals
 
 
-def jobs_table(jobs: list[tuple[str, Job]]) -> Table:
+def jobs_table(jobs: list[tuple[str, Job]]) -> Group:
+    """The jobs' headline figures, then each job's notes (what would make its result better)."""
     table = Table(title="jobs")
     for column in ("scene", "id", "state", "input", "output", "ratio", "vs baseline", "PSNR dB", "mirrors"):
         table.add_column(column)
@@ -84,4 +86,5 @@ def jobs_table(jobs: list[tuple[str, Job]]) -> Table:
             label, job.id, job.state, f"{m.input_bytes:,} B", f"{m.output_bytes:,} B", f"{m.ratio_to_ply:.1f}x",
             f"{m.ratio_to_baseline:.2f}x", psnr, str(len(job.mirrors)),
         )  # fmt: skip
-    return table
+    notes = [Text(f"{label}: {note}") for label, job in jobs if job.metrics for note in job.metrics.notes]
+    return Group(table, *notes)

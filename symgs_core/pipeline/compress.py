@@ -21,7 +21,7 @@ from ..report import Cameras, GaussianCounts, Report
 from ..scene import GaussianScene
 from ..views import check_photographs, dataset_views, evaluate, photographed_backdrop, self_supervised_views
 from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, rate_model, stages
-from .levels import run_levels
+from .levels import level_notes, run_levels
 from .state import LevelState
 
 BACKDROP_SAME = 2 / 255  # a backdrop this close to the job's background is that background, in 8-bit photographs
@@ -227,6 +227,7 @@ def compress(
         seconds=dict(report.seconds),
         device=str(device),
         config=config,
+        notes=level_notes(records, len(source), photographs=images is not None),
     )
     images_out: dict[str, bytes] = {}
     if config.pictures:

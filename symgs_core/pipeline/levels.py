@@ -49,6 +49,9 @@ HALO_SPACINGS = 3.0
 # twins a fine-tune only burns minutes before it is rolled back. Against photographs a fine-tune may gain beyond the
 # input itself, so there every membership that may pay is fine-tuned.
 SETTLED_COST = 0.005
+# A mirror whose reflection would stand in for at least this share of the scene, found but not kept against the
+# upload's own renders, is worth telling the user about: their photographs might make it pay.
+NOTABLE_SHARE = 0.05
 
 
 @dataclass(frozen=True)
@@ -253,6 +256,26 @@ def _unpaid(attempt: Attempt, floor: float, best_bytes: int) -> str:
         return f"{start}; even {TUNE_GAIN:g} dB more would leave the codec no room under the floor {floor:.2f} dB"
     return (f"{start}; even {TUNE_GAIN:g} dB more would leave the codec so little of the budget that the archive "
             f"is predicted at {attempt.predicted:,.0f} bytes, not below {best_bytes:,}")
+
+
+def level_notes(records: list[LevelReport], gaussians: int, *, photographs: bool) -> tuple[str, ...]:
+    """What a user can do about the mirrors of ``records`` (the levels tried on a scene of ``gaussians``).
+
+    Without photographs the reference is the upload's own renders, where a reflected half must match the half it
+    replaces; halves that are two reconstructions of one symmetric object do not, though against photographs of it
+    the reflection may render as well as the half it replaces (BENCHMARKS, "Against the truth")."""
+    if photographs or not records or any(r.accepted for r in records):
+        return ()
+    largest = max(r.right for r in records)
+    if largest < NOTABLE_SHARE * gaussians:
+        return ()
+    return (
+        f"A mirror was found whose reflection would stand in for {largest:,} of the {gaussians:,} Gaussians, but no "
+        "mirror level paid against renders of the upload, the reference when no photographs come with it: there a "
+        "reflected half must match the half it replaces, and two reconstructions of one symmetric object seldom do. "
+        "With the photographs the scene was trained from (symgs compress --images, or images in the API), a "
+        "reflection only has to match them, and the mirror may pay.",
+    )
 
 
 def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool,

@@ -232,3 +232,17 @@ def test_an_input_of_the_wrong_kind_is_named(scene_file, tmp_path, capsys, monke
     assert main([str(scene_file) if a == "SCENE" else a for a in argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"symgs {argv[0]}: error: ") and message in err and len(err.splitlines()) == 1, err
+
+
+def test_a_mirror_that_does_not_pay_without_photographs_comes_with_a_note(tmp_path, capsys):  # noqa: ANN001
+    """Halves that are two reconstructions of one object: against the upload's own renders no level pays, and the
+    command says what would let one (the report carries the same note)."""
+    scene = tmp_path / "capture.ply"
+    save_scene(synthetic_scene("global", n=1500, seed=2, sh_degree=1, capture="independent").scene, scene)
+    report = tmp_path / "r.json"
+    argv = ["compress", str(scene), "-o", str(tmp_path / "c.symgs"), "--report", str(report), "--max-levels", "1"]
+    assert main([*argv, *FAST, "--quiet"]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    figures = json.loads(report.read_text())
+    assert figures["levels"] and not any(level["accepted"] for level in figures["levels"])
+    assert len(notes) == 1 and "--images" in notes[0] and figures["notes"] == [notes[0].removeprefix("note: ")]

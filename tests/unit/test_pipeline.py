@@ -87,7 +87,7 @@ def test_asymmetric_scene_gets_no_level_and_is_no_larger_than_baseline():
     scene = synthetic_scene("asymmetric", n=1500, seed=5).scene
     result = compress(scene, config=FAST)
     report = result.report
-    assert not report.accepted_levels
+    assert not report.accepted_levels and report.notes == ()  # no mirror found: nothing to advise
     assert report.gaussians.stored == len(scene)
     assert report.output_bytes <= 1.02 * report.baseline_bytes
     # Lossless: the decoded scene is the input, reordered for coding.
@@ -301,6 +301,13 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     assert mirrored.accepted_levels and mirrored.fitting.worst >= mirrored.psnr_floor
     assert mirrored.output_bytes < 0.8 * plain.output_bytes
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
+    assert mirrored.notes == ()
+    # The same upload without its photographs: against its own renders the mirror does not pay, and the report
+    # says what would make it.
+    alone = compress(upload, config=config).report
+    assert not alone.accepted_levels and alone.levels
+    (note,) = alone.notes
+    assert "no mirror level paid against renders of the upload" in note and "--images" in note
 
 
 def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
