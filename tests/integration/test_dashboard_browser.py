@@ -1,5 +1,6 @@
 """The dashboard in headless Chromium against the real stack (redis-server, API, CPU worker): submit a scene through
-the form, watch its progress live, open its page and check that its charts and pictures load.
+the form, watch its progress live, open its page and check that its charts and pictures load; names and errors
+holding markup, keys forgotten, refused or of another tenant, and a job deleted while its page is open.
 
 Chromium is Debian's (``apt-get install chromium``), driven by Playwright without any browser download. The tests
 that need it skip only when it is not installed or does not start. Screenshots are left in the test's tmp dir."""
@@ -24,7 +25,7 @@ from playwright.sync_api import Error as PlaywrightError
 
 from service.api.errors import install_handlers
 from service.dashboard.routes import CSP, MEDIA_TYPES, STATIC, router
-from tests.integration.conftest import KEY_A, TINY, client_for
+from tests.integration.conftest import KEY_A, KEY_B, TINY, client_for, finished, submit, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -201,7 +202,6 @@ _LEVEL_MOVING = """() => {
 def test_job_page_cancels_a_running_job(stack, browser: Browser, tmp_path: Path) -> None:  # noqa: ANN001
     from symgs_core.ply import save_scene
     from symgs_core.synthetic import synthetic_scene
-    from tests.integration.conftest import submit
 
     # Near twins, not exact ones: their mirror costs the codec enough to be fine-tuned (exact twins are judged as
     # they start), so the job spends its time in a level whose progress moves.
@@ -347,3 +347,154 @@ def test_dashboard_is_part_of_the_running_api(stack) -> None:  # noqa: ANN001
     response = httpx.get(f"{stack.api_url}/", timeout=10)
     assert response.status_code == 200 and "Compression jobs" in response.text
     assert "/" not in httpx.get(f"{stack.api_url}/openapi.json", timeout=10).json()["paths"]
+
+
+def _not_found_logged(errors: list[str]) -> list[str]:
+    """Script errors, less Chromium's notes of a 404: how a page learns that a job is gone or not the key's."""
+    return [e for e in errors if "status of 404" not in e]
+
+
+# Whether the first or last text of an element reads left to right: its first character drawn left of its last.
+_READS_LEFT_TO_RIGHT = """(node, last) => {
+  const text = last ? node.lastChild : node.firstChild;
+  const box = (i) => {
+    const range = document.createRange();
+    range.setStart(text, i);
+    range.setEnd(text, i + 1);
+    return range.getBoundingClientRect().x;
+  };
+  return box(0) < box(text.length - 1);
+}"""
+
+
+def test_names_and_errors_holding_markup_are_shown_as_text(stack, browser: Browser, small_ply: bytes) -> None:  # noqa: ANN001
+    # A scene that fails as the worker loads it, with an error that quotes the uploader's file name: markup, a quote
+    # (a " would arrive as %22, as browsers send it), and a right-to-left override, which reverses what follows it.
+    header, body = small_ply.split(b"end_header\n", 1)
+    broken = header + b"end_header\n" + np.float32(np.nan).tobytes() + body[4:]
+    hostile = "<img src=x onerror=window.__pwned=1>'\u00e9\u2713\u202e.ply"
+    long_name = "scan" * 49 + ".ply"  # 200 characters, the most the API keeps, with nowhere to wrap
+
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    dialogs: list[str] = []
+    page.on("dialog", lambda dialog: (dialogs.append(dialog.message), dialog.dismiss()))
+    page.goto(f"{stack.api_url}/")
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    ids = {}
+    link = page.locator("#submit-status a")
+    for name in (hostile, long_name):
+        page.set_input_files("#scene", {"name": name, "mimeType": "application/octet-stream", "buffer": broken})
+        page.get_by_role("button", name="Submit").click()
+        link.filter(has_text=name).wait_for(timeout=20_000)
+        ids[name] = link.get_attribute("href").rsplit("/", 1)[-1]
+        if name == hostile:
+            # The override ends with the name: the job's id after it reads as it is.
+            assert link.evaluate("a => a.lastChild.textContent") == f" ({ids[hostile][:8]})"
+            assert link.evaluate(_READS_LEFT_TO_RIGHT, True)
+    assert page.eval_on_selector("#submit-status", "p => p.scrollWidth <= p.clientWidth"), "the name overflows"
+    with client_for(stack, KEY_A) as api:
+        error = wait_for(api, ids[hostile], finished)["error"]
+        assert error["code"] == "non_finite" and hostile in error["message"], error
+        wait_for(api, ids[long_name], finished)
+
+    page.get_by_role("button", name="Refresh").click()
+    for name, job_id in ids.items():
+        page.locator(f'tr[data-job-id="{job_id}"][data-state="failed"]').wait_for(timeout=10_000)
+        assert page.locator(f'tr[data-job-id="{job_id}"] a').inner_text() == name
+    # However long a name, the row's state and figures stay in view beside it.
+    wrap = page.locator(".table-wrap").bounding_box()
+    badge = page.locator(f'tr[data-job-id="{ids[long_name]}"] .badge').bounding_box()
+    assert badge["x"] + badge["width"] <= wrap["x"] + wrap["width"], (badge, wrap)
+    assert page.eval_on_selector(".table-wrap", "w => w.scrollWidth <= w.clientWidth")
+    # And in the list, where a narrow window puts the id on the name's line.
+    page.set_viewport_size({"width": 400, "height": 900})
+    assert page.locator(f'tr[data-job-id="{ids[hostile]}"] .job-id').evaluate(_READS_LEFT_TO_RIGHT, False)
+    page.set_viewport_size({"width": 1280, "height": 900})
+
+    page.locator(f'tr[data-job-id="{ids[hostile]}"] a').click()
+    page.locator("#error").filter(has_text="non_finite").wait_for(timeout=10_000)
+    assert page.locator("#title").inner_text() == hostile and page.title() == f"{hostile} \u00b7 SymGS"
+    assert page.locator("#error").inner_text() == f"non_finite: {error['message']}"
+    # A job that failed before any mirror level says that none was tried, not that none has started yet.
+    assert page.locator("#levels-empty").inner_text() == "No mirror level was tried."
+    assert page.locator('img[src="x"]').count() == 0 and page.evaluate("window.__pwned") is None
+    assert dialogs == [] and watched.foreign == [] and watched.errors == [], (dialogs, watched.errors)
+    watched.context.close()
+
+
+def use_key_again(page: Page, key: str) -> None:
+    """Enter a key through the header's button, and wait for the page that the new key reloads."""
+    page.evaluate("window.__beforeKey = true")
+    page.get_by_role("button", name="API key: set").click()
+    page.fill("#key-input", key)
+    page.get_by_role("button", name="Use this key").click()
+    page.wait_for_function("() => window.__beforeKey === undefined", timeout=10_000)
+
+
+def test_the_pages_show_only_what_the_current_key_may_see(stack, browser: Browser, done_job: dict) -> None:  # noqa: ANN001
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    with client_for(stack, KEY_A) as api:
+        total = api.get("/v1/jobs").json()["total"]
+    # An address past the last page (an old link, or its jobs deleted since) shows the last page.
+    page.goto(f"{stack.api_url}/?offset=1000")
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    last = (total - 1) // 20 * 20
+    page.locator("#page-info").filter(has_text=f"{last + 1}\u2013{total} of {total}").wait_for(timeout=10_000)
+    assert page.url == f"{stack.api_url}/" + (f"?offset={last}" if last else "")
+    page.goto(f"{stack.api_url}/")
+    row = page.locator(f'tr[data-job-id="{done_job["id"]}"]')
+    row.wait_for(timeout=10_000)
+
+    # Forgetting the key takes its jobs off the screen, as does a key the server refuses.
+    page.get_by_role("button", name="Forget key").click()
+    page.locator("#key-panel").wait_for(state="visible", timeout=10_000)
+    assert page.locator("#jobs tbody tr").count() == 0 and page.locator("#page-info").inner_text() == ""
+    # A key with a character no HTTP header can carry is refused by the panel, by name, before any request.
+    page.fill("#key-input", "k\u00e9y\u2713")
+    page.get_by_role("button", name="Use this key").click()
+    assert "not an API key" in page.locator("#key-note").inner_text()
+    assert page.locator("#key-toggle").inner_text() == "API key"
+    page.fill("#key-input", "not-a-key")
+    page.get_by_role("button", name="Use this key").click()
+    page.locator("#key-note").filter(has_text="That API key was not accepted.").wait_for(timeout=10_000)
+    assert page.locator("#jobs tbody tr").count() == 0
+
+    page.goto(f"{stack.api_url}/jobs/{done_job['id']}")
+    page.locator("#key-note").filter(has_text="That API key was not accepted.").wait_for(timeout=10_000)
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    page.locator("#metrics-section").wait_for(state="visible", timeout=20_000)
+    stages = page.locator("#stages li").count()
+    # The same key again: the page starts afresh, with each stage once.
+    use_key_again(page, KEY_A)
+    page.locator("#metrics-section").wait_for(state="visible", timeout=20_000)
+    page.locator("#downloads-section").wait_for(state="visible", timeout=10_000)
+    assert page.locator("#stages li").count() == stages
+    # Another tenant's key gets nothing of the job, not even what the page showed for the first key.
+    use_key_again(page, KEY_B)
+    page.locator("#job-status").filter(has_text="There is no job").wait_for(timeout=10_000)
+    assert page.locator("#metrics-section").is_hidden() and page.locator("#downloads-section").is_hidden()
+    assert page.locator("#title").inner_text() == "Job" and done_job["scene"]["filename"] not in page.title()
+    assert watched.foreign == [] and _not_found_logged(watched.errors) == [], watched.errors
+    watched.context.close()
+
+
+def test_job_page_of_a_job_deleted_while_it_is_open(stack, browser: Browser, scene_path: Path) -> None:  # noqa: ANN001
+    # A job for a GPU worker stays queued on this stack, which has only a CPU worker.
+    with client_for(stack, KEY_A) as api:
+        job_id = submit(api, scene_path, {**TINY, "device": "cuda"}).json()["id"]
+        watched = Watched(browser, stack.api_url)
+        page = watched.page
+        page.goto(f"{stack.api_url}/jobs/{job_id}")
+        page.fill("#key-input", KEY_A)
+        page.get_by_role("button", name="Use this key").click()
+        page.locator("#overall-pct").filter(has_text="waiting for a worker").wait_for(timeout=10_000)
+        assert api.delete(f"/v1/jobs/{job_id}").status_code == 204
+    page.locator("#job-status").filter(has_text="This job was deleted.").wait_for(timeout=20_000)
+    assert page.locator("#cancel").is_hidden()
+    assert watched.foreign == [] and _not_found_logged(watched.errors) == [], watched.errors
+    watched.context.close()

@@ -26,6 +26,13 @@ export function setApiKey(key) {
   else sessionStorage.removeItem(KEY_STORAGE);
 }
 
+// What the key panel says when the API answers 401: no key yet, or a key it refused (wrong or revoked).
+export const keyRefused = () => (apiKey() ? "That API key was not accepted." : "This server asks for an API key.");
+
+// fetch() refuses a header holding a character beyond Latin-1 (a pasted smart quote, say) with a TypeError that
+// names no key; printable Latin-1 is all a Bearer token can carry.
+const KEY_CHARACTERS = /^[\x20-\x7e\xa0-\xff]*$/;
+
 export function authHeaders(extra = {}) {
   const key = apiKey();
   return key ? { ...extra, Authorization: `Bearer ${key}` } : { ...extra };
@@ -271,7 +278,13 @@ export function setupKeyPanel(onChange) {
   });
   form.addEventListener("submit", (event) => {
     event.preventDefault();
-    setApiKey(input.value.trim());
+    const key = input.value.trim();
+    if (!KEY_CHARACTERS.test(key)) {
+      note.textContent = "That is not an API key: it holds a character that an HTTP header cannot carry.";
+      input.focus();
+      return;
+    }
+    setApiKey(key);
     input.value = "";
     panel.hidden = true;
     toggle.setAttribute("aria-expanded", "false");

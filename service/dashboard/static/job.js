@@ -16,6 +16,7 @@ import {
   formatRatio,
   formatSeconds,
   formatTime,
+  keyRefused,
   setupKeyPanel,
 } from "./app.js";
 
@@ -29,17 +30,14 @@ const CHARTS = {
 };
 const STEP = /step (\d+)\/(\d+)/; // the pipeline's level messages: "level 0: step 80/200 loss 0.0123"
 
-let stream = null;
 const timeLeft = new TimeLeft(document.getElementById("overall-eta"));
 setInterval(() => timeLeft.render(), 1000);
 let resultsShown = false;
 const stages = []; // {name, li, bar, status, start}
 const levels = []; // {level, li, bar, status}
 
-const askKey = setupKeyPanel(() => {
-  stream?.abort();
-  load();
-});
+// Another key (or none) may see another job, or none: start the page afresh rather than mix what two keys saw.
+const askKey = setupKeyPanel(() => location.reload());
 
 function setBadge(state) {
   const badge = $("state");
@@ -113,6 +111,7 @@ function onEvent(event) {
     const last = stages[stages.length - 1];
     finish(last, how, last ? event.time - last.start : null);
     finish(levels[levels.length - 1], how, null);
+    noLevelTried(event.state);
   }
 }
 
@@ -120,7 +119,13 @@ function fact(list, term, value) {
   list.append(el("dt", {}, term), el("dd", {}, value));
 }
 
+// A finished job that tried no level says so, rather than that none has started yet.
+function noLevelTried(state) {
+  if (TERMINAL.has(state) && !levels.length) $("levels-empty").textContent = "No mirror level was tried.";
+}
+
 function showJob(job) {
+  noLevelTried(job.state);
   document.title = `${job.scene.filename} \u00b7 SymGS`;
   $("title").textContent = `${job.scene.filename}`;
   $("progress-section").hidden = false;
@@ -387,34 +392,46 @@ function showSecondsAsStages(job, report) {
     finish(item, level.accepted ? "done" : "rolled back", level.seconds);
   }
   $("levels-empty").hidden = report.levels.length > 0;
-  if (!report.levels.length) $("levels-empty").textContent = "No mirror level was tried.";
+}
+
+// Reads the job; null, with the reason shown (`notFound` for a 404), when it cannot.
+async function fetchJob(notFound) {
+  try {
+    return await api(jobPath);
+  } catch (err) {
+    if (err instanceof AuthError) askKey(keyRefused());
+    else if (err instanceof ApiError && err.status === 404) {
+      $("job-status").textContent = notFound;
+      $("cancel").hidden = true;
+      timeLeft.set(null, null);
+    } else $("job-status").textContent = `Could not load the job: ${err.message}`;
+    return null;
+  }
 }
 
 async function followLive() {
-  stream = new AbortController();
-  const how = await followEvents(jobId, onEvent, stream.signal);
-  if (how === "aborted") return;
-  const job = await api(jobPath);
+  try {
+    await followEvents(jobId, onEvent, new AbortController().signal);
+  } catch (err) {
+    if (!(err instanceof AuthError)) throw err;
+    askKey(keyRefused()); // revoked while the page followed the job
+    return;
+  }
+  // The stream ends with the job's final event, or with the job itself: a deleted job has no state left to show.
+  const job = await fetchJob("This job was deleted.");
+  if (!job) return;
   showJob(job);
   await showResults(job);
 }
 
 async function load() {
-  let job;
-  try {
-    job = await api(jobPath);
-  } catch (err) {
-    if (err instanceof AuthError) askKey("This server asks for an API key.");
-    else if (err instanceof ApiError && err.status === 404) {
-      $("job-status").textContent = `There is no job ${jobId} (or it belongs to another API key).`;
-    } else $("job-status").textContent = `Could not load the job: ${err.message}`;
-    return;
-  }
+  const job = await fetchJob(`There is no job ${jobId} (or it belongs to another API key).`);
+  if (!job) return;
   $("job-status").textContent = "";
   showJob(job);
   if (!TERMINAL.has(job.state)) {
     followLive().catch((err) => {
-      if (err instanceof AuthError) askKey("This server asks for an API key.");
+      $("job-status").textContent = `Could not show the job: ${err.message}`;
     });
   } else if (job.state === "succeeded") {
     try {

@@ -5,13 +5,13 @@ import {
   TERMINAL,
   TimeLeft,
   api,
-  apiKey,
   el,
   followEvents,
   formatAge,
   formatBytes,
   formatPsnr,
   formatRatio,
+  keyRefused,
   setupKeyPanel,
 } from "./app.js";
 
@@ -34,13 +34,21 @@ const streams = new Map(); // job id -> AbortController
 const tbody = document.querySelector("#jobs tbody");
 const listStatus = document.getElementById("list-status");
 const askKey = setupKeyPanel(() => {
-  closeStreams();
+  forgetJobs();
   load();
 });
 
 function closeStreams() {
   for (const controller of streams.values()) controller.abort();
   streams.clear();
+}
+
+// The list shows only what the tab's current key may see: a key forgotten, replaced or refused takes its jobs away.
+function forgetJobs() {
+  closeStreams();
+  for (const row of rows.values()) row.tr.remove();
+  rows.clear();
+  document.getElementById("page-info").textContent = "";
 }
 
 function progressCell(jobId, label) {
@@ -52,7 +60,8 @@ function progressCell(jobId, label) {
 
 function newRow(job) {
   const label = job.scene.filename;
-  const link = el("a", { href: `/jobs/${encodeURIComponent(job.id)}` }, label);
+  // <bdi>: a name's direction marks (a right-to-left override, say) end with it, and cannot reverse the id beside it.
+  const link = el("a", { href: `/jobs/${encodeURIComponent(job.id)}` }, el("bdi", {}, label));
   const progress = progressCell(job.id, label);
   const cells = {
     scene: el("td", {}, link, el("span", { className: "job-id" }, job.id.slice(0, 8))),
@@ -127,7 +136,7 @@ function follow(jobId) {
     })
     .catch((err) => {
       streams.delete(jobId);
-      if (err instanceof AuthError) askKey("The server asks for an API key.");
+      if (err instanceof AuthError) askKey(keyRefused());
     });
 }
 
@@ -154,6 +163,13 @@ function updateAddress() {
 }
 
 function showPage(page) {
+  if (!page.items.length && page.offset > 0 && page.total > 0) {
+    // Past the end (an old address, or the last page's jobs deleted meanwhile): show the last page instead.
+    view.offset = Math.floor((page.total - 1) / LIMIT) * LIMIT;
+    updateAddress();
+    load();
+    return;
+  }
   view.total = page.total;
   const ids = new Set(page.items.map((job) => job.id));
   for (const id of [...rows.keys()]) {
@@ -203,8 +219,8 @@ function fetchPage() {
     })
     .catch((err) => {
       if (err instanceof AuthError) {
-        closeStreams();
-        askKey(apiKey() ? "That API key was not accepted." : "This server asks for an API key.");
+        forgetJobs();
+        askKey(keyRefused());
       } else {
         listStatus.textContent = `Could not load jobs: ${err.message}`;
       }
@@ -236,7 +252,8 @@ async function submit(event) {
     const job = await api("/v1/jobs", { method: "POST", body });
     status.replaceChildren(
       "Submitted: ",
-      el("a", { href: `/jobs/${encodeURIComponent(job.id)}` }, `${job.scene.filename} (${job.id.slice(0, 8)})`),
+      el("a", { href: `/jobs/${encodeURIComponent(job.id)}` }, el("bdi", {}, job.scene.filename),
+        ` (${job.id.slice(0, 8)})`),
       ` is ${job.state}.`,
     );
     form.scene.value = "";
