@@ -468,6 +468,7 @@ def test_the_pages_show_only_what_the_current_key_may_see(stack, browser: Browse
     page.fill("#key-input", KEY_A)
     page.get_by_role("button", name="Use this key").click()
     page.locator("#metrics-section").wait_for(state="visible", timeout=20_000)
+    assert page.locator("#notes").is_hidden() == (not done_job["metrics"]["notes"])
     stages = page.locator("#stages li").count()
     # The same key again: the page starts afresh, with each stage once.
     use_key_again(page, KEY_A)
@@ -498,3 +499,28 @@ def test_job_page_of_a_job_deleted_while_it_is_open(stack, browser: Browser, sce
     assert page.locator("#cancel").is_hidden()
     assert watched.foreign == [] and _not_found_logged(watched.errors) == [], watched.errors
     watched.context.close()
+
+
+def test_a_jobs_notes_are_shown_above_its_metrics(stack, browser: Browser, tmp_path: Path) -> None:  # noqa: ANN001
+    """A scene whose halves are two reconstructions, sent without photographs: its mirror does not pay, and the job
+    page says what might make it (a job without notes shows none: see the key test)."""
+    from symgs_core.ply import save_scene
+    from symgs_core.synthetic import synthetic_scene
+
+    scene = tmp_path / "capture.ply"
+    save_scene(synthetic_scene("global", n=1500, seed=2, sh_degree=1, capture="independent").scene, scene)
+    with client_for(stack, KEY_A) as api:
+        response = submit(api, scene, TINY)
+        assert response.status_code == 202, response.text
+        job = wait_for(api, response.json()["id"], finished, timeout=120)
+    assert job["state"] == "succeeded" and len(job["metrics"]["notes"]) == 1, job
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    page.goto(f"{stack.api_url}/jobs/{job['id']}")
+    page.fill("#key-input", KEY_A)
+    page.get_by_role("button", name="Use this key").click()
+    notes = page.locator("#notes li")
+    notes.first.wait_for(timeout=20_000)
+    assert notes.count() == 1 and notes.inner_text() == job["metrics"]["notes"][0]
+    assert "--images" in notes.inner_text()
+    assert not watched.errors and not watched.foreign

@@ -156,6 +156,9 @@ function row(table, label, value) {
 }
 
 function showMetrics(job, report) {
+  const notes = $("notes");
+  notes.replaceChildren(...(report.notes || []).map((note) => el("li", {}, note)));
+  notes.hidden = !notes.children.length;
   const t = document.querySelector("#metrics tbody");
   t.replaceChildren();
   row(t, "Input (PLY)", report.input_bytes ? formatBytes(report.input_bytes) : "\u2013");
