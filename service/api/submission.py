@@ -101,8 +101,11 @@ async def submit(
 ) -> Submitted:
     """Receive, check, store, record and queue a job. Whatever fails (a refused upload, Redis or the queue out of
     reach) leaves no files behind; Redis errors reach the client as 503 ``unavailable`` (``errors``)."""
-    if idempotency_key is not None and not 1 <= len(idempotency_key) <= 255:
-        raise ApiError(422, "bad_idempotency_key", "Idempotency-Key must have 1 to 255 characters")
+    # Printable ASCII, as the header's draft standard has it: the key is logged and shown back to its client.
+    if idempotency_key is not None and not (
+        1 <= len(idempotency_key) <= 255 and all(" " <= c <= "~" for c in idempotency_key)
+    ):
+        raise ApiError(422, "bad_idempotency_key", "Idempotency-Key must be 1 to 255 printable ASCII characters")
     staging = await run_in_threadpool(storage.new_staging)
     job_id: str | None = None
     try:

@@ -123,6 +123,10 @@ def test_idempotent_resubmission_returns_the_same_job(
     assert again.headers["location"] == first.headers["location"]
     for api, response in ((api_a, first), (api_b, other_key)):
         assert api.post(f"/v1/jobs/{response.json()['id']}:cancel").status_code == 202
+    # A key that is empty, too long or holds control characters is refused by name, before the upload is read.
+    for bad in (b"", b"k" * 256, b"upload\x0142", b"upload\x7f"):
+        refused = submit(api_a, scene_path, params, headers={"Idempotency-Key": bad})
+        assert refused.status_code == 422 and refused.json()["error"]["code"] == "bad_idempotency_key", refused.text
 
 
 def test_list_paginates_and_filters_by_state(api_a: httpx.Client, done_job: dict) -> None:

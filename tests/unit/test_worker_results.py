@@ -41,20 +41,3 @@ def test_a_finished_job_links_only_the_exports_it_has() -> None:
     assert {f.name for f in EXPORTS} - set(public_job(done).links.exports) == {"spz"}
     assert set(public_job(running).links.exports) == {f.name for f in EXPORTS}
 
-
-def test_the_job_view_carries_the_reports_notes() -> None:
-    """A job's headline figures hold the report's notes, so that the dashboard and `symgs submit` show them."""
-    from dataclasses import replace
-
-    from service.api.job_view import public_job
-    from worker.runner import headline
-
-    config = CompressConfig.for_preset("fast", fit_views=2, eval_views=2, eval_resolution=32, device="cpu",
-                                       pictures=False)  # fmt: skip
-    report = replace(compress(synthetic_scene("global", n=300, seed=3).scene, config=config).report, notes=("try X",))
-    mirrors, metrics = headline(report)
-    scene = {"filename": "scene.ply", "bytes": 1, "gaussians": 1, "sh_degree": 0}
-    done = JobRecord(id="3" * 32, owner="owner", params=JobParams(), queue="cpu", scene=scene, state="succeeded",
-                     progress=1.0, mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump())  # fmt: skip
-    shown = public_job(done).metrics
-    assert shown is not None and shown.notes == ["try X"]

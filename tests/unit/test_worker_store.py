@@ -4,6 +4,7 @@ leases, and the sweep that recovers jobs of lost workers."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -344,10 +345,10 @@ def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: P
 
 
 def test_headline_of_a_report() -> None:
-    mirrors, metrics = headline(sample_report())
+    mirrors, metrics = headline(dataclasses.replace(sample_report(), notes=("send the photographs",)))
     assert [m.model_dump() for m in mirrors] == [
         {"level": 0, "normal": [1.0, 0.0, 0.0], "offset": 0.5, "left": 10, "right": 9, "psnr_after": 40.0}
     ]
     assert metrics.model_dump() == {"input_bytes": 100, "output_bytes": 10, "ratio_to_ply": 10.0,
                                     "ratio_to_baseline": 1.5, "psnr": None, "psnr_object": 44.0, "ssim": 1.0,
-                                    "seconds": 2.25}  # fmt: skip
+                                    "seconds": 2.25, "notes": ["send the photographs"]}  # fmt: skip
