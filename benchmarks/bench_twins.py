@@ -207,8 +207,8 @@ def truth_table(args: argparse.Namespace) -> None:
 
     kind = "global"
     jobs = [(f"synthetic {kind} (independent, n={TRUTH_N}, SH 1), photographs of its twin truth",
-             lambda: photographed(kind, args.work / kind, n=TRUTH_N, photos=2, tests=TEST_PHOTOS,
-                                  resolution=RESOLUTION), args.work / kind)]  # fmt: skip
+             lambda: photographed(kind, args.work / f"truth-{kind}", n=TRUTH_N, photos=2, tests=TEST_PHOTOS,
+                                  resolution=RESOLUTION), args.work / f"truth-{kind}")]  # fmt: skip
     for folder in args.captures:
         ply = cached_capture(folder, args.work / folder.name / f"trained-{ROUNDS}x{ITERATIONS}.ply",
                              say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
