@@ -21,26 +21,28 @@ PREFIX = "service"
 FAST_RECOVERY = {"SYMGS_LEASE_SECONDS": "3", "SYMGS_MAINTENANCE_SECONDS": "1", "SYMGS_PEER_SECONDS": "0"}
 
 
+def host_folder(root: Path, name: str) -> tuple[Path, dict[str, str]]:
+    """A folder ``root/name`` to run a process from, with its own HOME and TMPDIR inside: what the process writes for
+    itself stays there, as on a host of its own."""
+    home, tmp = root / name / "home", root / name / "tmp"
+    home.mkdir(parents=True, exist_ok=True)
+    tmp.mkdir(exist_ok=True)
+    return root / name, {"HOME": str(home), "TMPDIR": str(tmp)}
+
+
 @dataclass
 class S3Service:
     stack: LocalStack
     server: S3Server
     root: Path  # the hosts' folders
 
-    def host(self, name: str) -> tuple[Path, dict[str, str]]:
-        """A folder to run a process from, with its own HOME and TMPDIR inside."""
-        home, tmp = self.root / name / "home", self.root / name / "tmp"
-        home.mkdir(parents=True, exist_ok=True)
-        tmp.mkdir(exist_ok=True)
-        return self.root / name, {"HOME": str(home), "TMPDIR": str(tmp)}
-
     def start_worker(self, name: str, env: dict[str, str] | None = None) -> Child:
-        folder, host_env = self.host(name)
+        folder, host_env = host_folder(self.root, name)
         return self.stack.start_worker("cpu", env={**host_env, **(env or {})}, cwd=folder)
 
     def start_api(self, name: str, env: dict[str, str] | None = None) -> str:
         """Start an API process on a host of its own; its URL."""
-        folder, host_env = self.host(name)
+        folder, host_env = host_folder(self.root, name)
         self.stack.start_api(env={**host_env, **(env or {})}, cwd=folder)
         return self.stack.api_url
 

@@ -16,17 +16,11 @@ import pytest
 from service.cli.stack import Child, LocalStack
 from tests.integration.conftest import KEY_A, TINY, client_for, finished, submit, wait_for
 from tests.integration.netns import NetworkUnavailable, private_network
+from tests.integration.s3_hosts import host_folder
 from tests.s3_server import BUCKET, start_s3_server
 from worker.store import JobStore, P, owner_of
 
 PREFIX = "multihost"
-
-
-def _host_env(root: Path, name: str) -> tuple[Path, dict[str, str]]:
-    home, tmp = root / name / "home", root / name / "tmp"
-    home.mkdir(parents=True)
-    tmp.mkdir()
-    return root / name, {"HOME": str(home), "TMPDIR": str(tmp)}
 
 
 def _worker_running(stack: LocalStack, job_id: str) -> Child:
@@ -58,12 +52,12 @@ def test_a_job_survives_the_loss_of_its_worker_host(tmp_path: Path, scene_path: 
         s3 = start_s3_server(stack.root, bind="0.0.0.0", host=net.server_address, wrap=server_host)
         stack.children.append(s3.child)
         stack.env.update(s3.env())
-        api_dir, api_env = _host_env(tmp_path, "api")
+        api_dir, api_env = host_folder(tmp_path, "api")
         stack.start_api(env=api_env, cwd=api_dir)
         redis_port, s3_port = urlsplit(stack.redis_url).port, urlsplit(s3.endpoint).port
         hosts = {}
         for host in net.workers:
-            folder, host_env = _host_env(tmp_path, host.namespace)
+            folder, host_env = host_folder(tmp_path, host.namespace)
             remote = {
                 **host_env, **s3.env(f"http://{host.server_address}:{s3_port}"),
                 "SYMGS_REDIS_URL": f"redis://{host.server_address}:{redis_port}/0",

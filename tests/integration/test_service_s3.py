@@ -13,18 +13,9 @@ import pytest
 
 from service.cli.stack import LocalStack
 from tests.integration.conftest import KEY_A, KEY_B, TINY, client_for, finished, submit, wait_for
+from tests.integration.s3_hosts import PREFIX, host_folder
 from tests.s3_server import BUCKET, S3Server, start_s3_server
 from worker.store import owner_of
-
-PREFIX = "service"
-
-
-def _host(root: Path, name: str) -> tuple[Path, dict[str, str]]:
-    """A folder to run a process from, with its own HOME and TMPDIR inside."""
-    home, tmp = root / name / "home", root / name / "tmp"
-    home.mkdir(parents=True)
-    tmp.mkdir()
-    return root / name, {"HOME": str(home), "TMPDIR": str(tmp)}
 
 
 @pytest.fixture(scope="module")
@@ -36,9 +27,9 @@ def s3_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LocalSt
         server = start_s3_server(stack.root)
         stack.children.append(server.child)
         stack.env.update(server.env())
-        api_dir, api_env = _host(root, "api")
+        api_dir, api_env = host_folder(root, "api")
         stack.start_api(env=api_env, cwd=api_dir)
-        worker_dir, worker_env = _host(root, "worker")
+        worker_dir, worker_env = host_folder(root, "worker")
         stack.start_worker("cpu", env=worker_env, cwd=worker_dir)
         yield stack, server, root
     finally:
