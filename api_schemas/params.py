@@ -7,13 +7,13 @@ write the same archive.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from symgs_core.config import DEFAULT_PRESET, PRESETS, SEED_MAX, Preset
+from symgs_core.config import DEFAULT_PRESET, PRESETS, SEED_MAX, DeviceChoice, Preset
 
-DevicePreference = Literal["auto", "cpu", "cuda"]
+DevicePreference = DeviceChoice
 _PRESETS_TEXT = "; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items())
 
 

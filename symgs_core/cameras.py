@@ -1,4 +1,7 @@
-"""Pinhole cameras, OpenCV convention: world-to-camera (R, t), x right, y down, z forward; pixel centres at +0.5."""
+"""Pinhole cameras, OpenCV convention: world-to-camera (R, t), x right, y down, z forward; pixel centres at +0.5.
+
+A camera is built on the CPU (``HOST``) from host numbers; a job moves it to its scene's device where it renders
+(``Camera.to``), and the intrinsics and view matrix follow its rotation's device."""
 
 from __future__ import annotations
 
@@ -7,6 +10,8 @@ from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
+
+from .devices import HOST
 
 COORDINATE_CONVENTION = "opencv: world-to-camera extrinsics, camera x right, y down, z forward"
 NEAR_PLANE = 0.01  # camera-space depth below which Gaussians are not drawn (gsplat's default)
@@ -87,12 +92,12 @@ class Camera:
         near: float = NEAR_PLANE,
     ) -> Camera:
         """A camera at ``eye`` looking at ``target``; ``fov_deg`` is the horizontal field of view."""
-        eye_t = torch.as_tensor(eye, dtype=torch.float64)
-        forward = torch.as_tensor(target, dtype=torch.float64) - eye_t
+        eye_t = torch.as_tensor(eye, dtype=torch.float64, device=HOST)
+        forward = torch.as_tensor(target, dtype=torch.float64, device=HOST) - eye_t
         if forward.norm() == 0:
             raise ValueError("look_at: eye and target coincide")
         forward = forward / forward.norm()
-        up_t = torch.as_tensor(up, dtype=torch.float64)
+        up_t = torch.as_tensor(up, dtype=torch.float64, device=HOST)
         right = torch.linalg.cross(forward, up_t)
         if right.norm() < 1e-9:
             raise ValueError("look_at: up is parallel to the viewing direction")
@@ -115,25 +120,25 @@ SPLAT_SIGMAS = 5.0
 
 
 def scene_bounds(means: Tensor, scales: Tensor | None = None) -> tuple[Tensor, float]:
-    """Robust centre (median) [3] and radius (95th percentile distance) of a point set [N, 3].
+    """Robust centre (median) [3], on ``means``' device, and radius (95th percentile distance) of a point set [N, 3].
 
     With the Gaussians' log-scales [N, 3], the radius is at least ``SPLAT_SIGMAS`` of the median Gaussian's largest
     sigmas: a scene of one Gaussian, or of a few at one point, is framed whole rather than seen from inside its splat
     (a camera at the nearest of ``views.DISTANCES`` then sees 3.7 sigmas across half its frame)."""
     if means.shape[0] == 0:
-        return torch.zeros(3), 1.0
+        return torch.zeros(3, dtype=means.dtype, device=means.device), 1.0
     center = means.median(dim=0).values
     dist = (means - center).norm(dim=-1)
     radius = float(torch.quantile(dist.float(), 0.95)) if dist.numel() > 1 else 0.0
     if scales is not None:
-        radius = max(radius, SPLAT_SIGMAS * float(scales.detach().cpu().max(dim=-1).values.median().exp()))
+        radius = max(radius, SPLAT_SIGMAS * float(scales.detach().max(dim=-1).values.median().exp()))
     # A point set of no size still gets cameras a float apart from its centre.
     return center, max(radius, 1e-6 * max(1.0, float(center.abs().max())))
 
 
 def fibonacci_directions(count: int) -> Tensor:
-    """``count`` unit vectors [count, 3] spread evenly over the sphere."""
-    i = torch.arange(count, dtype=torch.float64) + 0.5
+    """``count`` unit vectors [count, 3] spread evenly over the sphere, on the host."""
+    i = torch.arange(count, dtype=torch.float64, device=HOST) + 0.5
     z = 1.0 - 2.0 * i / count
     r = torch.sqrt(torch.clamp(1.0 - z * z, min=0.0))
     phi = i * math.pi * (3.0 - math.sqrt(5.0))
@@ -152,11 +157,12 @@ def orbit_cameras(
 ) -> list[Camera]:
     """``count`` cameras spread over a sphere around ``center`` [3], each framing a ball of ``radius``."""
     distance = margin * radius / math.sin(math.radians(fov_deg) / 2.0)
-    up_t = torch.tensor(up, dtype=torch.float64)
+    center = center.to(HOST)
+    up_t = torch.tensor(up, dtype=torch.float64, device=HOST)
     cams = []
     for i, d in enumerate(fibonacci_directions(count)):
         # Near the poles the world up is parallel to the view: use another up there.
-        cam_up = up_t if abs(float(d @ up_t)) < 0.99 else torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        cam_up = up_t if abs(float(d @ up_t)) < 0.99 else up_t.new_tensor([0.0, 1.0, 0.0])
         eye = center.to(torch.float64) + distance * d
         cams.append(Camera.look_at(eye, center.to(torch.float64), cam_up, fov_deg, width, height,
                                    name=f"orbit_{i:03d}", near=near_for(radius)))  # fmt: skip

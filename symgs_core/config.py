@@ -13,6 +13,7 @@ from typing import Any, Literal, get_args
 
 Preset = Literal["fast", "small", "balanced", "high", "lossless"]
 DeviceChoice = Literal["auto", "cpu", "cuda"]
+DEVICE_CHOICES: tuple[DeviceChoice, ...] = get_args(DeviceChoice)
 PRESET_NAMES: tuple[str, ...] = get_args(Preset)
 DEFAULT_PRESET: Preset = "balanced"
 

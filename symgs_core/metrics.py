@@ -51,7 +51,7 @@ def psnr(img: Tensor, ref: Tensor, max_val: float = 1.0) -> Tensor:
 
 @lru_cache(maxsize=8)
 def _gaussian_1d(dtype: torch.dtype, device: torch.device) -> Tensor:
-    x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - (SSIM_WINDOW - 1) / 2
+    x = torch.arange(SSIM_WINDOW, dtype=torch.float64, device="cpu") - (SSIM_WINDOW - 1) / 2
     w = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
     return (w / w.sum()).to(dtype=dtype, device=device)
 

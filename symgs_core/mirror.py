@@ -35,8 +35,7 @@ class Plane:
     offset: float
 
     def __post_init__(self) -> None:
-        n = torch.tensor(self.normal, dtype=torch.float64)
-        norm = float(n.norm())
+        norm = math.hypot(*self.normal)
         if not abs(norm - 1.0) < 1e-4:
             raise ValueError(f"plane normal must be unit length, got norm {norm}")
 
@@ -126,12 +125,30 @@ def reflect(scene: GaussianScene, normal: Tensor, offset: Tensor | float) -> Gau
     )
 
 
-def expand(stored: GaussianScene, normals: Tensor, offsets: Tensor, bits: Tensor) -> tuple[GaussianScene, Tensor]:
+Plan = list[tuple[int, Tensor]]  # (level, indices [M] of the current set it reflects), from the last level to 0
+
+
+def expansion_plan(bits: Tensor) -> Plan:
+    """Which Gaussians each level reflects when a stored set with ``bits`` [|S|, L+1] is expanded: it depends on the
+    bits alone, so a fine-tune that keeps them computes it once (finding the members waits for the device)."""
+    plan: Plan = []
+    cur_bits = bits.to(torch.bool)
+    for level in range(bits.shape[1] - 1, -1, -1):
+        index = torch.nonzero(cur_bits[:, level])[:, 0]
+        if index.numel():
+            plan.append((level, index))
+            cur_bits = torch.cat([cur_bits, cur_bits[index]])
+    return plan
+
+
+def expand(
+    stored: GaussianScene, normals: Tensor, offsets: Tensor, bits: Tensor, plan: Plan | None = None
+) -> tuple[GaussianScene, Tensor]:
     """Expand ``stored`` through the levels.
 
-    normals [L+1, 3], offsets [L+1] (level 0 first), bits [|S|, L+1] bool.
-    Returns the expanded scene and, for each of its Gaussians, the index [N_out] of the stored Gaussian it derives
-    from. Differentiable in the stored attributes and in the planes.
+    normals [L+1, 3], offsets [L+1] (level 0 first), bits [|S|, L+1] bool; ``plan``: ``expansion_plan(bits)``, when
+    the caller keeps it. Returns the expanded scene and, for each of its Gaussians, the index [N_out] of the stored
+    Gaussian it derives from. Differentiable in the stored attributes and in the planes.
     """
     levels = normals.shape[0]
     if tuple(offsets.shape) != (levels,) or tuple(bits.shape) != (len(stored), levels):
@@ -140,16 +157,10 @@ def expand(stored: GaussianScene, normals: Tensor, offsets: Tensor, bits: Tensor
             f"{tuple(bits.shape)} disagree with {len(stored)} stored Gaussians"
         )
     scene = stored
-    cur_bits = bits.to(torch.bool)
     origin = torch.arange(len(stored), device=stored.device)
-    for level in range(levels - 1, -1, -1):
-        sel = cur_bits[:, level]
-        if not bool(sel.any()):
-            continue
-        mirrored = reflect(scene.select(sel), normals[level], offsets[level])
-        scene = GaussianScene.cat([scene, mirrored])
-        cur_bits = torch.cat([cur_bits, cur_bits[sel]])
-        origin = torch.cat([origin, origin[sel]])
+    for level, index in expansion_plan(bits) if plan is None else plan:
+        scene = GaussianScene.cat([scene, reflect(scene.select(index), normals[level], offsets[level])])
+        origin = torch.cat([origin, origin[index]])
     return scene, origin
 
 

@@ -71,7 +71,7 @@ def sh_to_rgb(coeffs: Tensor, dirs: Tensor) -> Tensor:
 
 
 def _fibonacci_sphere(n: int) -> Tensor:
-    i = torch.arange(n, dtype=torch.float64) + 0.5
+    i = torch.arange(n, dtype=torch.float64, device="cpu") + 0.5
     z = 1.0 - 2.0 * i / n
     r = torch.sqrt(1.0 - z * z)
     phi = i * math.pi * (3.0 - math.sqrt(5.0))
@@ -82,10 +82,12 @@ def _fibonacci_sphere(n: int) -> Tensor:
 _SAMPLES = 64
 
 
-@lru_cache(maxsize=4)
-def _sample_basis_pinv(degree: int) -> tuple[Tensor, Tensor]:
+@lru_cache(maxsize=16)
+def _sample_basis_pinv(degree: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The sample directions [S, 3] and the pseudo-inverse of their basis [M, S], float64 on ``device``: solved once
+    on the CPU, kept per device."""
     dirs = _fibonacci_sphere(_SAMPLES)
-    return dirs, torch.linalg.pinv(sh_basis(degree, dirs))
+    return dirs.to(device), torch.linalg.pinv(sh_basis(degree, dirs)).to(device)
 
 
 def sh_transform_matrix(matrix: Tensor, degree: int) -> Tensor:
@@ -94,7 +96,7 @@ def sh_transform_matrix(matrix: Tensor, degree: int) -> Tensor:
     ``matrix`` [3, 3] is orthogonal (a rotation or a reflection). Bands never mix. Exact up to float64 rounding
     because each band's span is closed under orthogonal maps; differentiable in ``matrix``.
     """
-    dirs, pinv = _sample_basis_pinv(degree)
+    dirs, pinv = _sample_basis_pinv(degree, matrix.device)
     m = matrix.to(torch.float64)
     mapped = dirs @ m.T  # rows: matrix @ d
     return pinv @ sh_basis(degree, mapped)

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .cameras import Camera, fibonacci_directions, near_for, scene_bounds
+from .devices import HOST
 from .metrics import mse_to_psnr, ssim
 from .report import CameraSet, Fidelity
 from .scene import GaussianScene
@@ -123,8 +124,8 @@ def _laid(
 
 def _turn(seed: int) -> Tensor:
     """A rotation [3, 3] drawn from ``seed``: each set's rig is turned apart from the others."""
-    gen = torch.Generator().manual_seed(seed)
-    q, r = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    gen = torch.Generator(HOST).manual_seed(seed)
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64, device=HOST))
     q = q * torch.sign(torch.diagonal(r))[None, :]
     return q * torch.sign(torch.linalg.det(q))
 
@@ -137,7 +138,7 @@ def viewer_cameras(
     cameras already cover near and far)."""
     turn = _turn(seed)
     directions = fibonacci_directions(count) @ turn.T
-    c = center.to(torch.float64)
+    c = center.to(HOST, torch.float64)
     near, far = DISTANCES
     golden = (math.sqrt(5.0) - 1.0) / 2.0
     cams = []
@@ -161,7 +162,7 @@ def self_supervised_views(
     seed: int = 0,
 ) -> ViewSet:
     """The three sets, targets rendered from ``scene``; each set's rig is turned apart by its own rotation."""
-    center, radius = scene_bounds(scene.means.detach().cpu(), scene.scales)
+    center, radius = scene_bounds(scene.means.detach(), scene.scales)
     counts = {"training": train, "fitting": fit, "evaluation": eval}
     sizes = {"training": resolution, "fitting": eval_resolution, "evaluation": eval_resolution}
     sets, targets = [], []
@@ -303,26 +304,30 @@ def dataset_eval_views(
     return [target.on(background) for target in _eval_targets(folder, scene, eval=eval, scale=scale)]
 
 
+EVAL_BATCH = 16  # views rendered together: one gsplat call on a GPU, and a bound on the images held at once
+
+
 @torch.no_grad()
 def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *, with_ssim: bool = True) -> Fidelity:
     """Fidelity of ``scene`` on ``views``: PSNRs from the squared error summed over every view (full frame, and the
-    object's pixels), SSIM the mean over views (NaN without ``with_ssim``: decisions read the PSNRs alone)."""
-    from .render import render
+    object's pixels), SSIM the mean over views (NaN without ``with_ssim``: decisions read the PSNRs alone). The sums
+    stay on the scene's device until the end: one wait for the device per call, not per view."""
+    from .render import render_many
 
     if not views:
         raise ValueError("evaluate needs at least one view")
-    full = obj = 0.0
-    pixels = object_pixels = 0
+    sums = []  # per view: squared error over the frame, over the object's pixels, and the object's pixel count
+    pixels = 0
     ssims = []
-    for camera, target, mask in views:
-        image = render(scene, camera, background).image
-        error = ((image - target) ** 2).mean(dim=-1)
-        full += float(error.sum())
-        pixels += error.numel()
-        obj += float(error[mask].sum())
-        object_pixels += int(mask.sum())
-        if with_ssim:
-            ssims.append(float(ssim(image, target)))
+    for start in range(0, len(views), EVAL_BATCH):
+        chunk = [views[i] for i in range(start, min(start + EVAL_BATCH, len(views)))]
+        for (_, target, mask), out in zip(chunk, render_many(scene, [v.camera for v in chunk], background)):
+            error = ((out.image - target) ** 2).mean(dim=-1)
+            sums.append(torch.stack([error.sum(), (error * mask).sum(), mask.sum()]).double())
+            pixels += error.numel()
+            if with_ssim:
+                ssims.append(ssim(out.image, target))
+    full, obj, object_pixels = torch.stack(sums).sum(dim=0).tolist()
     psnr = mse_to_psnr(full / pixels)
     psnr_object = mse_to_psnr(obj / object_pixels) if object_pixels else psnr
-    return Fidelity(psnr, psnr_object, sum(ssims) / len(ssims) if ssims else math.nan)
+    return Fidelity(psnr, psnr_object, float(torch.stack(ssims).double().mean()) if ssims else math.nan)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from symgs_core.config import PRESET_NAMES
+from symgs_core.config import DEVICE_CHOICES, PRESET_NAMES
 
 from .parser import CliError, check_output, check_seed
 
@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
     p.add_argument("--seed", type=int)
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto")
     p.set_defaults(func=_bench)
 
 

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS
+from symgs_core.config import DEFAULT_PRESET, DEVICE_CHOICES, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
 from .parser import (
@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--images", type=Path, help="posed images (NeRF-Synthetic or COLMAP folder)")
     p.add_argument("--report", type=Path, help="write the JSON report here")
     p.add_argument("--pictures", type=Path, help="write the PNG pictures and charts (as a job's) into this folder")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto")
     p.add_argument("--preset", choices=PRESET_NAMES, default=DEFAULT_PRESET,
                    help="; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items()))
     # Left out, each setting takes the preset's value (symgs_core.config): the same job as over HTTP or Python.

@@ -245,7 +245,7 @@ def equal_fidelity(rows: list[BenchRow], scene: str, method: str = OURS) -> None
 def bench_scene(ply: Path, out: Path, settings: BenchSettings, say: Say | None = None, name: str | None = None
                 ) -> list[BenchRow]:  # fmt: skip
     """Every row for one scene; outputs go to ``out/files/<scene>/``."""
-    from ..pipeline.compress import resolve_device
+    from ..devices import resolve_device
     from ..ply import load_scene
 
     say = say or (lambda message: None)

@@ -14,6 +14,7 @@ values by rounding alone, which a lossless archive must not do.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -24,8 +25,10 @@ from ..render.projection import quat_to_rotmat
 from ..scene import GaussianScene
 
 
-def _octahedral() -> Tensor:
-    """The 24 rotations of the cube as unit quaternions [24, 4] (w, x, y, z), one of each +-pair."""
+@functools.lru_cache(maxsize=4)
+def _octahedral(device: torch.device) -> tuple[Tensor, Tensor]:
+    """The 24 rotations of the cube as unit quaternions [24, 4] (w, x, y, z), one of each +-pair, on ``device``; and
+    for each, the old scale [24, 3] that becomes its new scale i of a Gaussian it turns."""
     rows = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
     rows += [[0.5, *signs] for signs in itertools.product((0.5, -0.5), repeat=3)]
     h = math.sqrt(0.5)
@@ -34,7 +37,8 @@ def _octahedral() -> Tensor:
             row = [0.0] * 4
             row[i], row[j] = h, sign * h
             rows.append(row)
-    return torch.tensor(rows, dtype=torch.float64)
+    group = torch.tensor(rows, dtype=torch.float64, device=device)
+    return group, quat_to_rotmat(group).abs().argmax(dim=1)
 
 
 def _multiply(a: Tensor, b: Tensor) -> Tensor:
@@ -52,23 +56,18 @@ def _multiply(a: Tensor, b: Tensor) -> Tensor:
     )
 
 
-GROUP = _octahedral()
-# New scale i of a Gaussian turned by GROUP[k] is its old scale SCALE_SOURCE[k, i].
-SCALE_SOURCE = quat_to_rotmat(GROUP).abs().argmax(dim=1)
-
-
 def canonical_frames(scene: GaussianScene) -> GaussianScene:
     """``scene`` with every rotation replaced by the equivalent frame closest to the identity (unit, w > 0) and its
     scales permuted to match; positions, opacity and colour unchanged, and so is every covariance."""
     if len(scene) == 0:
         return scene
-    device = scene.quats.device
-    q = scene.quats.detach().to("cpu", torch.float64)
+    group, scale_source = _octahedral(scene.quats.device)
+    q = scene.quats.detach().to(torch.float64)
     q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
     # The w of q p is q . (p_w, -p_x, -p_y, -p_z): one matrix product scores all 24 frames.
-    conjugates = GROUP * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64)
+    conjugates = group * group.new_tensor([1.0, -1.0, -1.0, -1.0])
     best = torch.cat([(chunk @ conjugates.T).abs().argmax(dim=1) for chunk in q.split(1 << 18)])
-    quats = _multiply(q, GROUP[best])
+    quats = _multiply(q, group[best])
     quats = quats * torch.where(quats[:, :1] < 0, -1.0, 1.0)
-    scales = scene.scales.detach().to("cpu").gather(1, SCALE_SOURCE[best])
-    return scene.with_(quats=quats.to(torch.float32).to(device), scales=scales.to(device))
+    scales = scene.scales.detach().gather(1, scale_source[best])
+    return scene.with_(quats=quats.to(scene.quats.dtype), scales=scales)

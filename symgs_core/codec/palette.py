@@ -62,7 +62,7 @@ def _nearest(rows: torch.Tensor, entries: torch.Tensor) -> tuple[np.ndarray, np.
         return labels, best
     norms = (entries * entries).sum(dim=1)
     chunk = max(1, CHUNK_ELEMENTS // len(entries))
-    buffer = torch.empty(min(chunk, len(rows)), len(entries))
+    buffer = rows.new_empty(min(chunk, len(rows)), len(entries))
     for start in range(0, len(rows), chunk):
         block = rows[start : start + chunk]
         distances = torch.addmm(norms, block, entries.T, alpha=-2.0, out=buffer[: len(block)]).numpy()

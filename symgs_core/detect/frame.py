@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,8 +27,8 @@ class Frame:
 
     def plane_to_local(self, plane: Plane) -> tuple[Tensor, float]:
         """A plane of the scene as (unit normal [3] float64, offset) in the normalised frame."""
-        n = torch.tensor(plane.normal, dtype=torch.float64)
-        return n, (plane.offset - float(n @ self.centre.to(torch.float64).cpu())) / self.radius
+        n = torch.tensor(plane.normal, dtype=torch.float64, device=self.centre.device)
+        return n, (plane.offset - float(n @ self.centre.to(torch.float64))) / self.radius
 
 
 def normalised_frame(means: Tensor, quantile: float) -> Frame | None:
@@ -37,13 +38,13 @@ def normalised_frame(means: Tensor, quantile: float) -> Frame | None:
     # torch's median (the lower middle value) per axis, by a partial sort of each column.
     m = means.detach().cpu().numpy()
     middle = (m.shape[0] - 1) // 2
-    centre = torch.tensor([float(np.partition(m[:, a], middle)[middle]) for a in range(3)], dtype=means.dtype)
-    centre = centre.to(means.device)
+    centre = torch.tensor([float(np.partition(m[:, a], middle)[middle]) for a in range(3)], dtype=means.dtype,
+                          device=means.device)  # fmt: skip
     dist = (means - centre).norm(dim=1)
     k = min(max(int(round(quantile * dist.numel())), 1), dist.numel())
     radius = float(dist.kthvalue(k).values)
     if not radius > 0:
         radius = float(dist.max())  # most points coincide with the centre: fall back to the full extent
-    if not (radius > 0 and torch.isfinite(torch.tensor(radius))):
+    if not (radius > 0 and math.isfinite(radius)):
         return None
     return Frame(centre, radius)

@@ -90,7 +90,7 @@ class GridSpec:
         v = (c[1] - self.half_uv) * self.cell
         r2 = min(float(u * u + v * v), 4.0)
         s = math.sqrt(max(1.0 - r2 / 4.0, 0.0))
-        n = torch.stack([u * s, v * s, torch.tensor(1.0 - r2 / 2.0, dtype=torch.float64)])
+        n = torch.stack([u * s, v * s, torch.tensor(1.0 - r2 / 2.0, dtype=torch.float64, device=c.device)])
         return n / n.norm(), float((c[2] - self.half_g) * self.depth)
 
 
@@ -147,7 +147,7 @@ class VoteIndex:
         ids = np.sort(self.in_blocks([(v - radius) // 2 for v in c], [(v + radius) // 2 for v in c]))
         ids = torch.from_numpy(ids.astype(np.int64))
         cells = self.spec.unravel(torch.from_numpy(self.cells)[ids].long())
-        return ids[(cells - torch.tensor(c)).abs().amax(dim=1) <= radius]
+        return ids[(cells - torch.tensor(c, device=cells.device)).abs().amax(dim=1) <= radius]
 
 
 def top_peaks(
@@ -171,7 +171,7 @@ def top_peaks(
 def _twins(spec: GridSpec, coord: Tensor) -> list[Tensor]:
     """Coordinates of every cell the plane of cell ``coord`` is voted into (two near the seam)."""
     n, g = spec.plane(coord)
-    flat, _ = spec.cells(n.float()[None], torch.tensor([g], dtype=torch.float32))
+    flat, _ = spec.cells(n.float()[None], torch.tensor([g], dtype=torch.float32, device=n.device))
     return [coord.cpu(), *spec.unravel(flat).cpu()]
 
 
@@ -184,7 +184,8 @@ def _blocked_peaks(cells: Tensor, index: VoteIndex, count: int, radius: int) -> 
         flat = int(torch.argmax(smoothed))
         if float(smoothed.view(-1)[flat]) <= 0 or len(peaks) == count:
             break
-        block = torch.tensor([flat // (shape[1] * shape[2]), (flat // shape[2]) % shape[1], flat % shape[2]])
+        block = torch.tensor([flat // (shape[1] * shape[2]), (flat // shape[2]) % shape[1], flat % shape[2]],
+                             device=smoothed.device)  # fmt: skip
         near = torch.from_numpy(index.in_blocks((block - 1).tolist(), (block + 1).tolist()).astype(np.int64))
         coord, votes = _sparse_peaks(cells.cpu()[near], spec, 1, radius)[0]
         if all((coord - c).abs().max() > radius for c, _ in peaks):

@@ -22,6 +22,7 @@ from numba import prange
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ..devices import HOST
 from .clusters import Attributes
 from .compiled import compiled, compiled_parallel
 from .pairs import Axes
@@ -178,12 +179,13 @@ class Matcher:
         """Share of the Gaussians that random planes (random normals through random Gaussians) match, estimated on
         the Gaussians of random voxels: what any plane explains by chance here. Coarse or cluttered sets match much
         more by chance than finely sampled surfaces do."""
-        gen = torch.Generator().manual_seed(seed)
+        gen = torch.Generator(HOST).manual_seed(seed)
         idx = self.chance_sample
         shares = []
         for _ in range(planes):
-            n = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0).numpy()
-            offset = float(self.p[self.rank[int(torch.randint(self.p.shape[0], (1,), generator=gen))]] @ n)
+            n = torch.randn(3, generator=gen, dtype=torch.float64, device=HOST)
+            n = torch.nn.functional.normalize(n, dim=0).numpy()
+            offset = float(self.p[self.rank[int(torch.randint(self.p.shape[0], (1,), generator=gen, device=HOST))]] @ n)
             d = _distances(self.p, n, offset)
             matched, _ = self._matched(idx, d, n, d > 0)
             shares.append(float(matched.mean()) if matched.size else 0.0)

@@ -11,6 +11,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
+from ..devices import HOST
 from ..mirror import Plane
 from ..scene import GaussianScene
 from .clusters import Clusters, attributes, cluster
@@ -57,27 +58,29 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
     smaller than ``min_gaussians``, or when no candidate peak reaches ``min_coverage``. A plane found at one level,
     or listed in ``exclude`` (mirrors of earlier levels, when the caller runs one level at a time), is not reported
     again: the parts of the scene it failed to match would otherwise make it come back. Non-finite Gaussians are
-    never members. Indices come back on the scene's device; the passes over Gaussians and pairs (cluster keys, pair
-    sampling, voting, KD-tree matching) run on the CPU, compiled.
+    never members. Indices come back on the scene's device.
     """
     if not isinstance(scene, GaussianScene):
         raise TypeError(f"detect takes a GaussianScene (load_scene reads one from a file), got {type(scene).__name__}")
     config = config or DetectConfig()
     known = list(exclude)
-    parts = (scene.means, scene.scales, scene.sh_dc, scene.opacities[:, None], scene.quats)
+    # Detection runs on the CPU by design, whatever the scene's device: its passes are compiled CPU code (numba) and
+    # scipy's KD-tree, and its many small steps ran 18x slower as GPU kernels. It reads no higher SH bands, so only the
+    # first attributes travel here, once; the memberships travel back to the scene's device at the end.
+    device = scene.device
+    light = scene.with_(sh_rest=scene.sh_rest[:, :0]).detach().to(HOST)
+    parts = (light.means, light.scales, light.sh_dc, light.opacities[:, None], light.quats)
     # A finite row sum has finite terms; a non-finite one may be finite terms that overflow: those rows are checked.
     finite = torch.isfinite(cast(Tensor, sum(t.sum(dim=1) for t in parts)))  # parts is not empty: a tensor
     suspect = torch.nonzero(~finite)[:, 0]
     if suspect.numel():
         finite[suspect] = torch.cat([torch.isfinite(t[suspect]) for t in parts], dim=1).all(dim=1)
     working = torch.nonzero(finite)[:, 0]
-    # Detection reads no higher SH bands: the working sets need not copy them, nor the whole scene be copied at all.
-    light = scene.with_(sh_rest=scene.sh_rest[:, :0])
     mirrors: list[Mirror] = []
     for level in range(config.max_mirrors):
         if working.numel() < config.min_gaussians:
             break
-        subset = light if working.numel() == len(scene) else light.select(working)
+        subset = light if working.numel() == len(light) else light.select(working)
         found = _best(_detect_level(subset, config, level, known), _detect_in_parts(subset, config, level, known))
         if found is None:
             break
@@ -87,7 +90,7 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
         kept = working[is_out]  # left and out, in ascending order: the next working set
         is_out[sides.left] = False
         coverage = (sides.left.numel() + sides.right.numel()) / working.numel()
-        left, right, out = working[sides.left], working[sides.right], working[is_out]
+        left, right, out = (working[s].to(device) for s in (sides.left, sides.right, is_out))
         mirrors.append(Mirror(plane, votes, left, right, out, coverage, level, timings))
         known.append(plane)
         working = kept

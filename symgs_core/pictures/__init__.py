@@ -26,7 +26,7 @@ def _cameras(views: Sequence[View]) -> list[Camera]:
 
 def accepted_planes(records: Sequence[LevelReport]) -> list[tuple[int, Plane]]:
     """(level, unit plane) of each accepted level; fine-tuning leaves normals of any length, the archive's are unit."""
-    return [(r.level, Plane.from_tensor(torch.tensor(r.normal), r.offset)) for r in records if r.accepted]
+    return [(r.level, Plane.from_tensor(torch.tensor(r.normal, device="cpu"), r.offset)) for r in records if r.accepted]
 
 
 def job_pictures(

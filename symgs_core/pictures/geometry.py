@@ -24,7 +24,7 @@ def scene_box(means: Tensor, trim: float = 0.01) -> tuple[np.ndarray, np.ndarray
         raise ValueError(f"trim must be in [0, 0.5), got {trim}")
     points = means.detach().to("cpu", torch.float64)
     points = points[:: max(1, len(points) // _SAMPLE)]
-    q = torch.tensor([trim, 1.0 - trim], dtype=torch.float64)
+    q = points.new_tensor([trim, 1.0 - trim])
     lo, hi = torch.quantile(points, q, dim=0).numpy()
     return lo, hi
 

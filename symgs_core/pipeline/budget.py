@@ -37,6 +37,7 @@ from ..codec.quantize import (
 )
 from ..codec.section import SectionCodec
 from ..codec.steps import QuantSteps
+from ..devices import HOST
 from ..scene import GaussianScene
 from .sensitivity import Sensitivity
 
@@ -155,10 +156,10 @@ class RateDistortion:
     """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``."""
 
     def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps) -> None:
-        stored = stored.detach().to("cpu")
+        stored = stored.detach().to(HOST)  # the ladders' encodes run where the entropy coders do
         self.extent = extent_of(stored)
         cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy())
-        order = coding_order(stored, torch.zeros(len(stored), 0, dtype=torch.bool), cells)
+        order = coding_order(stored, torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST), cells)
         self.order = order
         self.stored, self.sens = stored.select(order), sens.select(order)
         self.start = start
@@ -213,7 +214,8 @@ class RateDistortion:
 
         ``keep`` [N] bool, in the input's order: the Gaussians pruning kept (``prune_order``); every one when None.
         Bits scale with the share kept."""
-        kept = torch.ones(len(self.stored), dtype=torch.bool) if keep is None else keep[self.order]
+        every = torch.ones(len(self.stored), dtype=torch.bool, device=HOST)
+        kept = every if keep is None else keep.to(HOST)[self.order]
         lo, hi = 1e-3, 1e18  # bits per unit of MSE, bracketing every scene here
         choice = self._at_price(hi, kept)
         if choice.error > allowed:
@@ -261,11 +263,10 @@ class RateDistortion:
             return None
         energy, cost_err, nonzero = self._energy, self._cost_err, self._nonzero
         total_bits = bits_of("sh_rest")
-        widths = torch.tensor([0] + [s.stop - s.start for s in band_slices(degree)], dtype=torch.float64)
+        widths = energy.new_tensor([0] + [s.stop - s.start for s in band_slices(degree)])
         if isinstance(codec, ShPaletteCodec):
             row_bits = total_bits / max(int(nonzero.sum()), 1)
-            kept_bits = torch.stack([torch.zeros(len(energy), dtype=torch.float64),
-                                     torch.full((len(energy),), row_bits, dtype=torch.float64)], dim=1)
+            kept_bits = torch.stack([energy.new_zeros(len(energy)), energy.new_full((len(energy),), row_bits)], dim=1)
             cost = kept_bits + mu * cost_err[:, [0, degree]]
             return torch.where(cost.argmin(dim=1) == 0, 0, degree)
         per_coefficient = total_bits / max(int(nonzero.sum()) * int(widths.sum()), 1)
@@ -281,13 +282,13 @@ class RateDistortion:
         slices = band_slices(self.stored.sh_degree)
         energy = torch.stack([e[:, s].sum(dim=(1, 2)) for s in slices], dim=1) if slices else e.new_zeros(len(e), 0)
         tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])
-        cost_err = torch.cat([tail, torch.zeros(len(energy), 1, dtype=tail.dtype)], dim=1)
+        cost_err = torch.cat([tail, tail.new_zeros(len(energy), 1)], dim=1)
         nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
         return energy, cost_err, nonzero
 
     def _dropped_sh_error(self, degrees: Tensor) -> Tensor:
         energy = self._energy
-        band = torch.arange(1, energy.shape[1] + 1)
+        band = torch.arange(1, energy.shape[1] + 1, device=energy.device)
         return (energy * (band[None, :] > degrees[:, None])).sum(dim=1)
 
     def apply(self, choice: Choice, *, pruning: bool = True, sh_reduction: bool = True) -> tuple[Tensor, GaussianScene]:
@@ -295,13 +296,13 @@ class RateDistortion:
         zero; and the indices [M] of the input it keeps. Either reduction may be left out (for the accounting)."""
         stored = self.stored
         if choice.degrees is not None and sh_reduction:
-            band_of = torch.tensor([math.isqrt(i + 1) for i in range(stored.sh_rest.shape[1])])
+            band_of = torch.tensor([math.isqrt(i + 1) for i in range(stored.sh_rest.shape[1])], device=stored.device)
             keep_band = band_of[None, :] <= choice.degrees[:, None]
             stored = stored.with_(sh_rest=stored.sh_rest * keep_band[:, :, None].to(stored.sh_rest.dtype))
         keep = choice.keep if pruning else torch.ones_like(choice.keep)
         kept = torch.sort(self.order[keep]).values
         back = torch.empty_like(self.order)
-        back[self.order] = torch.arange(len(self.order))
+        back[self.order] = torch.arange(len(self.order), device=self.order.device)
         return kept, stored.select(back[kept])
 
     def steps(self, choice: Choice) -> QuantSteps:

@@ -15,6 +15,7 @@ from ..cameras import COORDINATE_CONVENTION, scene_bounds
 from ..codec import decode_archive, expand_archive
 from ..codec.steps import QuantSteps
 from ..config import PRESETS, CompressConfig
+from ..devices import resolve_device
 from ..ply_header import PlyError
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from ..report import Cameras, GaussianCounts, Report
@@ -42,14 +43,6 @@ class CompressResult:
     archive: bytes
     report: Report
     images: dict[str, bytes] = field(default_factory=dict)
-
-
-def resolve_device(choice: str) -> torch.device:
-    if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()):
-        if not torch.cuda.is_available():
-            raise ValueError("device 'cuda' requested but no CUDA device is available")
-        return torch.device("cuda")
-    return torch.device("cpu")
 
 
 class _Reporter:

@@ -23,6 +23,7 @@ from ..codec.masks import MASKS
 from ..codec.order import grid_cells
 from ..codec.registry import ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
+from ..devices import HOST
 from ..metrics import mse_to_psnr, psnr_to_mse
 from ..mirror import Plane
 from ..report import CodecReport, StageReport
@@ -42,7 +43,7 @@ _CLOSE = 0.8  # a passing archive that measures at least this share of the allow
 def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lossless") -> bytes:
     """The archive of ``state`` in coding order, written by ``codec`` (an archive codec or a registered name)."""
     planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
-    stored, bits = state.stored.detach().to("cpu"), state.bits.cpu()
+    stored, bits = state.stored.detach().to(HOST), state.bits.to(HOST)  # the entropy coders run on the host
     cells = grid_cells(archive_codec(codec).sections["means"], stored.means.numpy())
     perm = coding_order(stored, bits, cells)
     return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
@@ -99,7 +100,7 @@ def prune(
     takes half the budget or more is not kept: the quantiser needs the rest."""
     n = len(state.stored)
     order = rd.prune_order()
-    keep_all = torch.ones(n, dtype=torch.bool)
+    keep_all = torch.ones(n, dtype=torch.bool, device=HOST)  # masks over the rate model's set, which lives there
     best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
     for share in reversed(PRUNE_SHARES):
         if should_stop is not None and should_stop():

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
+from torch import Tensor
 from scipy.spatial import cKDTree
 
 from ..codec.steps import QuantSteps
@@ -116,7 +117,7 @@ def apply_mirror(
 def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 - detect.Mirror
     """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first; every
     one with its earlier-level bits made consistent (``consistent_bits``)."""
-    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32)
+    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32, device=state.stored.device)
     offset = float(mirror.plane.offset)
     left, right = consistent_bits(state, normal, offset, mirror.left, mirror.right)
     coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
@@ -139,7 +140,7 @@ def _spacing(means: torch.Tensor) -> float:
         return math.inf
     sample = points[:: max(1, len(points) // 20_000)]
     distances, _ = cKDTree(points).query(sample, k=2)
-    return float(max(float(torch.tensor(distances[:, 1]).median()), 1e-12))
+    return float(max(float(torch.from_numpy(distances[:, 1]).median()), 1e-12))
 
 
 Rate = Callable[[float, float], float]  # (state's fitting PSNR, a candidate's) -> predicted ratio of archive bytes
@@ -230,10 +231,10 @@ def tune(
         best["psnr"] = max(best["psnr"], psnr)
         return gained >= MIN_GAIN_DB
 
-    def on_step(step: int, loss: float) -> None:
+    def on_step(step: int, loss: Tensor) -> None:
         if step % 10 == 0:
             report("levels", (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
-                   f"level {level}: step {step}/{config.iterations} loss {loss:.4f}", level)  # fmt: skip
+                   f"level {level}: step {step}/{config.iterations} loss {float(loss):.4f}", level)  # fmt: skip
 
     torch.manual_seed(config.seed + 1000 * (level + 1))
     tuned, run = optimize_level(

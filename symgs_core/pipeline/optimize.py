@@ -21,7 +21,7 @@ from torch import Tensor
 
 from ..codec.steps import QuantSteps
 from ..metrics import ssim
-from ..mirror import expand
+from ..mirror import expand, expansion_plan
 from ..progress import Cancelled, StopFn
 from ..render import render
 from ..scene import GaussianScene
@@ -86,14 +86,15 @@ def optimize_level(
     check_every: int = 0,
     keep_going: Callable[[LevelState], bool] | None = None,
     should_stop: StopFn | None = None,
-    on_step: Callable[[int, float], None] | None = None,
+    on_step: Callable[[int, Tensor], None] | None = None,
 ) -> tuple[LevelState, int]:
     """Fine-tune ``state`` for at most ``iterations`` Adam steps on ``views``; returns a new, detached state and the
     steps run.
 
     ``trainable`` [|S|] bool: the stored Gaussians that may move (all when None). The last ``train_planes`` planes
     move too. Every ``check_every`` steps ``keep_going(state so far)`` may end the run early (the caller measures
-    whether the last stretch still gained).
+    whether the last stretch still gained). ``on_step(step, loss)`` gets the loss as a tensor: reading it waits for
+    the device, so a caller reads only the steps it reports.
     """
     if iterations == 0 or not views:
         return state.detach(), 0
@@ -117,6 +118,7 @@ def optimize_level(
     decay = torch.optim.lr_scheduler.ExponentialLR(optimizer, FINAL_LR ** (1.0 / max(iterations, 1)))
     rng = random.Random(seed)
     order: list[int] = []
+    plan = expansion_plan(state.bits)  # the bits never change here: the members of each level are found once
 
     def planes() -> tuple[Tensor, Tensor]:
         return torch.cat([frozen_n, train_n / train_n.norm(dim=-1, keepdim=True)]), torch.cat([frozen_g, train_g])
@@ -137,7 +139,7 @@ def optimize_level(
         cam, target, _ = views[order.pop()]
         normals, offsets = planes()
         shown = fake_quantized(params, steps, extent) if steps is not None else params
-        scene, _ = expand(GaussianScene(**shown), normals, offsets, state.bits)
+        scene, _ = expand(GaussianScene(**shown), normals, offsets, state.bits, plan)
         loss = loss_fn(render(scene, cam, background).image, target)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -145,7 +147,7 @@ def optimize_level(
         decay.step()
         run = step + 1
         if on_step is not None:
-            on_step(step, float(loss.detach()))
+            on_step(step, loss.detach())
         if check_every and keep_going is not None and run % check_every == 0 and run < iterations:
             if not keep_going(current()):
                 break
@@ -157,16 +159,14 @@ def halo(before: GaussianScene, region: Tensor, after: GaussianScene, *, radius:
     voxels of side ``radius`` holding a region Gaussian, grown by one voxel, hashed (O(N), no neighbour search)."""
     if region.numel() == 0 or len(after) == 0 or not math.isfinite(radius) or radius <= 0:
         return torch.zeros(len(after), dtype=torch.bool, device=after.device)
-    points = before.means.detach()[region.to(before.device)].to("cpu", torch.float64)
+    points = before.means.detach()[region.to(before.device)].to(torch.float64)
     origin = points.min(dim=0).values
     cells = torch.floor((points - origin) / radius).to(torch.int64)
-    grown = torch.cat([cells + torch.tensor(d) for d in _NEIGHBOURHOOD])
-    marked = torch.unique(_key(grown))
-    targets = torch.floor((after.means.detach().to("cpu", torch.float64) - origin) / radius).to(torch.int64)
+    steps = torch.tensor((-1, 0, 1), device=cells.device)
+    neighbourhood = torch.cartesian_prod(steps, steps, steps)  # [27, 3]
+    marked = torch.unique(_key((cells[None] + neighbourhood[:, None]).reshape(-1, 3)))
+    targets = torch.floor((after.means.detach().to(origin.device, torch.float64) - origin) / radius).to(torch.int64)
     return torch.isin(_key(targets), marked).to(after.device)
-
-
-_NEIGHBOURHOOD = [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)]
 
 
 def _key(cells: Tensor) -> Tensor:

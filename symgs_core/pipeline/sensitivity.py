@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..devices import HOST
 from ..mirror import expand
 from ..render import render
 from ..scene import GaussianScene
@@ -54,11 +55,11 @@ class Sensitivity:
 
     def removal(self, opacities: Tensor) -> Tensor:
         """Predicted error growth [N] of removing each Gaussian: its alpha going to zero."""
-        alpha = torch.sigmoid(opacities.detach().to("cpu", torch.float64))
+        alpha = torch.sigmoid(opacities.detach().to(HOST, torch.float64))
         return self.weights["opacities"] * alpha * alpha
 
     def select(self, index: Tensor) -> Sensitivity:
-        return Sensitivity({k: v[index.cpu()] for k, v in self.weights.items()})
+        return Sensitivity({k: v[index.to(HOST)] for k, v in self.weights.items()})
 
 
 def _alpha(logits: np.ndarray) -> np.ndarray:
@@ -74,24 +75,26 @@ def sensitivity(
         raise ValueError("sensitivity needs at least one view")
     stored = state.stored.detach()
     params = {k: v.clone().requires_grad_(True) for k, v in stored.tensors().items()}
-    total = {k: torch.zeros(v.shape, dtype=torch.float64) for k, v in params.items()}
-    gen = torch.Generator().manual_seed(seed)
+    total = {k: torch.zeros(v.shape, dtype=torch.float64, device=v.device) for k, v in params.items()}
+    # The signs are drawn on the host so that every device estimates from the same probes.
+    gen = torch.Generator(HOST).manual_seed(seed)
     object_pixels = sum(int(view.mask.sum()) for view in views)
     all_pixels = sum(view.mask.numel() for view in views)
-    for view in views:
-        scene, _ = expand(GaussianScene(**params), state.normals, state.offsets, state.bits)
+    scene, _ = expand(GaussianScene(**params), state.normals, state.offsets, state.bits)  # once: every view reuses it
+    for v, view in enumerate(views):
         image = render(scene, view.camera, background).image
         # Per-pixel weight of the squared error: MSE over the object's pixels plus MSE over the frame, each the mean
         # over colour channels and over every fitting view.
         pixel = view.mask.to(image.dtype) / max(object_pixels, 1) + 1.0 / all_pixels
         scale = (pixel / 3.0).sqrt()[..., None]
         for p in range(probes):
-            signs = torch.randint(0, 2, image.shape, generator=gen).to(image) * 2.0 - 1.0
-            grads = torch.autograd.grad((image * signs * scale).sum(), list(params.values()),
-                                        retain_graph=p + 1 < probes)  # fmt: skip
+            signs = torch.randint(0, 2, image.shape, generator=gen, device=HOST).to(image) * 2.0 - 1.0
+            last = v + 1 == len(views) and p + 1 == probes
+            grads = torch.autograd.grad((image * signs * scale).sum(), list(params.values()), retain_graph=not last)
             for name, grad in zip(params, grads):
-                total[name] += grad.detach().to("cpu", torch.float64) ** 2 / probes
-    alpha = torch.sigmoid(stored.opacities.detach().to("cpu", torch.float64))
+                total[name] += grad.detach().to(torch.float64) ** 2 / probes
+    weights = {k: v.to(HOST) for k, v in total.items()}
+    alpha = torch.sigmoid(stored.opacities.detach().to(HOST, torch.float64))
     # d image / d alpha = d image / d logit / (alpha (1 - alpha)).
-    total["opacities"] = total["opacities"] / (alpha * (1.0 - alpha)).clamp_min(1e-12) ** 2
-    return Sensitivity(total)
+    weights["opacities"] = weights["opacities"] / (alpha * (1.0 - alpha)).clamp_min(1e-12) ** 2
+    return Sensitivity(weights)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ._gsplat import BackendUnavailableError
-from .dispatch import Backend, render
+from .dispatch import Backend, render, render_many
 from .result import RenderResult
 
-__all__ = ["Backend", "BackendUnavailableError", "RenderResult", "render"]
+__all__ = ["Backend", "BackendUnavailableError", "RenderResult", "render", "render_many"]

@@ -31,7 +31,6 @@ def render_cpu(
         depth=out[..., 3] / alpha.clamp_min(1e-10),
         aux={
             "radii": radii,
-            "num_visible": int(visible.sum()),
             "num_intersections": binning.num_intersections,
             "backend": "cpu",
         },

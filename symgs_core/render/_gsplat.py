@@ -1,11 +1,12 @@
 """The CUDA backend: gsplat's rasterizer with the same conventions as the CPU backend.
 
 gsplat is an optional extra (``pip install 'symgs[gpu]'``); it is imported inside the functions that need it so the
-package imports without it. Its kernels compile on first use.
+package imports without it. Its kernels compile on first use (``symgs worker --mode gpu`` builds them at start).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
 
 import torch
@@ -17,6 +18,10 @@ from ..sh import num_coeffs
 from .projection import LOW_PASS
 from .rasterize import TILE_SIZE
 from .result import RenderResult
+
+# Cameras rendered in one call hold at most this many (camera, Gaussian) pairs: gsplat keeps per-pair projections,
+# about 100 bytes each, so a batch stays near 3 GiB whatever the scene's size.
+BATCH_PAIRS = 1 << 25
 
 
 class BackendUnavailableError(RuntimeError):
@@ -32,8 +37,12 @@ def gsplat_importable() -> bool:
     return True
 
 
-def render_gsplat(scene: GaussianScene, camera: Camera, background: Tensor, sh_degree: int) -> RenderResult:
-    """Render with ``gsplat.rasterization`` on the scene's CUDA device; ``background`` [3]."""
+def render_gsplat_many(
+    scene: GaussianScene, cameras: Sequence[Camera], background: Tensor, sh_degree: int
+) -> list[RenderResult]:
+    """One render per camera with ``gsplat.rasterization`` on the scene's CUDA device, the cameras of one size drawn
+    together in as few gsplat calls as ``BATCH_PAIRS``
+    allows; ``background`` [3]. The scene's activations are computed once for all of them."""
     if not scene.means.is_cuda:
         raise BackendUnavailableError(
             f"the gsplat backend renders CUDA tensors, but the scene is on {scene.device}; "
@@ -48,31 +57,45 @@ def render_gsplat(scene: GaussianScene, camera: Camera, background: Tensor, sh_d
 
     device, dtype = scene.device, scene.means.dtype
     coeffs = torch.cat([scene.sh_dc[:, None, :], scene.sh_rest[:, : num_coeffs(sh_degree) - 1]], dim=1)
-    out, alphas, meta = gsplat.rasterization(
-        means=scene.means,
-        quats=scene.quats,
-        scales=scene.activated_scales(),
-        opacities=scene.activated_opacities(),
-        colors=coeffs,  # [N, K, 3]
-        viewmats=camera.viewmat.to(device=device, dtype=dtype)[None],  # [1, 4, 4]
-        Ks=camera.K.to(device=device, dtype=dtype)[None],  # [1, 3, 3]
-        width=camera.width,
-        height=camera.height,
-        near_plane=camera.near,
-        eps2d=LOW_PASS,
-        sh_degree=sh_degree,
-        packed=False,
-        tile_size=TILE_SIZE,
-        backgrounds=background.to(device=device, dtype=dtype)[None],  # [1, 3]
-        render_mode="RGB+ED",
-        rasterize_mode="classic",
-    )
-    radii = meta["radii"][0]  # [N] in older gsplat, [N, 2] (x and y extent) in newer
-    if radii.dim() == 2:
-        radii = radii.max(dim=-1).values
-    return RenderResult(
-        image=out[0, ..., :3].clamp(0.0, 1.0),
-        alpha=alphas[0, ..., 0],
-        depth=out[0, ..., 3],
-        aux={"radii": radii.to(torch.int32), "num_visible": int((radii > 0).sum()), "backend": "gsplat"},
-    )
+    scales, opacities = scene.activated_scales(), scene.activated_opacities()
+    bg = background.to(device=device, dtype=dtype)
+    per_call = max(1, BATCH_PAIRS // max(len(scene), 1))
+    out: list[RenderResult | None] = [None] * len(cameras)
+    groups: dict[tuple[int, int, float], list[int]] = {}
+    for i, camera in enumerate(cameras):
+        groups.setdefault((camera.width, camera.height, camera.near), []).append(i)
+    for (width, height, near), members in groups.items():
+        for start in range(0, len(members), per_call):
+            batch = members[start : start + per_call]
+            views = torch.stack([cameras[i].viewmat.to(device=device, dtype=dtype) for i in batch])  # [C, 4, 4]
+            ks = torch.stack([cameras[i].K.to(device=device, dtype=dtype) for i in batch])  # [C, 3, 3]
+            colours, alphas, meta = gsplat.rasterization(
+                means=scene.means,
+                quats=scene.quats,
+                scales=scales,
+                opacities=opacities,
+                colors=coeffs,  # [N, K, 3]
+                viewmats=views,
+                Ks=ks,
+                width=width,
+                height=height,
+                near_plane=near,
+                eps2d=LOW_PASS,
+                sh_degree=sh_degree,
+                packed=False,
+                tile_size=TILE_SIZE,
+                backgrounds=bg.expand(len(batch), 3),
+                render_mode="RGB+ED",
+                rasterize_mode="classic",
+            )
+            radii = meta["radii"]  # [C, N] in older gsplat, [C, N, 2] (x and y extent) in newer
+            if radii.dim() == 3:
+                radii = radii.max(dim=-1).values
+            for c, i in enumerate(batch):
+                out[i] = RenderResult(
+                    image=colours[c, ..., :3].clamp(0.0, 1.0),
+                    alpha=alphas[c, ..., 0],
+                    depth=colours[c, ..., 3],
+                    aux={"radii": radii[c].to(torch.int32), "backend": "gsplat"},
+                )
+    return [r for r in out if r is not None]

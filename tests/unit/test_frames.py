@@ -7,11 +7,13 @@ import numpy as np
 import torch
 
 from symgs_core.cameras import Camera
-from symgs_core.codec.frames import GROUP, canonical_frames
+from symgs_core.codec.frames import _octahedral, canonical_frames
 from symgs_core.codec.quantize import RotationCodec
 from symgs_core.render import render
 from symgs_core.render.projection import quat_to_rotmat
 from symgs_core.scene import GaussianScene
+
+GROUP = _octahedral(torch.device("cpu"))[0]
 
 
 def _scene(n: int, seed: int = 0) -> GaussianScene:

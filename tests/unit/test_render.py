@@ -99,7 +99,7 @@ def test_tile_rasterizer_matches_dense_reference(sh_degree: int) -> None:
     # The scene exercises every rule: clamped alphas, early stops, culling behind the camera, many pairs.
     assert counts["clamped"] > 0 and counts["stopped_pixels"] > 0 and counts["behind_camera"] > 0
     assert counts["pairs"] > 5 * cam.width * cam.height
-    assert result.aux["num_visible"] < len(scene)
+    assert result.num_visible < len(scene)
     torch.testing.assert_close(result.image, image, rtol=0, atol=1e-10)
     torch.testing.assert_close(result.alpha, alpha, rtol=0, atol=1e-10)
     solid = alpha > 0.2
@@ -217,7 +217,7 @@ def test_empty_scene_renders_background() -> None:
     assert result.image.shape == (cam.height, cam.width, 3)
     assert torch.equal(result.image, bg.expand(cam.height, cam.width, 3))
     assert torch.equal(result.alpha, torch.zeros(cam.height, cam.width))
-    assert result.aux["num_visible"] == 0
+    assert result.num_visible == 0
 
 
 def test_default_background_is_black_and_culled_scene_still_backpropagates() -> None:
@@ -226,7 +226,7 @@ def test_default_background_is_black_and_culled_scene_still_backpropagates() -> 
     scene.means.requires_grad_(True)
     result = render(scene, make_camera())
     assert torch.equal(result.image, torch.zeros_like(result.image))
-    assert result.aux["num_visible"] == 0 and int(result.aux["radii"].abs().sum()) == 0
+    assert result.num_visible == 0 and int(result.aux["radii"].abs().sum()) == 0
     result.image.sum().backward()
     assert torch.equal(scene.means.grad, torch.zeros_like(scene.means))
 
@@ -352,4 +352,4 @@ def test_compiled_projection_renders_what_the_reference_renders() -> None:
     slow = render(scene.map(lambda t: t.clone().requires_grad_(True)), cam, backend="cpu")
     torch.testing.assert_close(fast.image, slow.image.detach(), rtol=0, atol=2e-5)
     torch.testing.assert_close(fast.alpha, slow.alpha.detach(), rtol=0, atol=2e-5)
-    assert fast.aux["num_visible"] == slow.aux["num_visible"]
+    assert fast.num_visible == slow.num_visible
