@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import socket
+import subprocess
+import sys
 import uuid
 
 from celery import signals
@@ -14,6 +16,21 @@ from .settings import get_settings
 from .storage_backend import storage_from_settings
 from .store import JobStore
 
+GPU_CHECK_S = 900  # the first check on a machine may compile gsplat's kernels (about a minute on 16 cores)
+
+
+def _check_gpu() -> None:
+    """Refuse to start where no job could render: no CUDA device, gsplat missing, or its kernels unbuildable or
+    broken. The check runs in a child process: this one forks the job pool, and CUDA does not survive a fork."""
+    check = [sys.executable, "-m", "symgs_core.render.gpu"]
+    try:
+        done = subprocess.run(check, capture_output=True, text=True, timeout=GPU_CHECK_S)
+    except subprocess.TimeoutExpired:
+        raise ValueError(f"the GPU check did not finish in {GPU_CHECK_S} s; run a cpu worker here") from None
+    if done.returncode != 0:
+        why = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+        raise ValueError(f"this machine cannot run GPU jobs: {why}; run a cpu worker here")
+
 
 def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> None:
     """Consume queue ``mode`` (gpu or cpu) in this process until stopped. A GPU worker runs one job at a time."""
@@ -22,12 +39,9 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
     if mode == "gpu" and concurrency != 1:
         raise ValueError(f"a gpu worker runs one job at a time, got concurrency {concurrency}")
     if mode == "gpu":
-        # Ask NVML, not the CUDA runtime: pool processes are forked from this one, and CUDA does not survive a fork.
+        # Jobs ask NVML, not the CUDA runtime, whether there is a device: the pool is forked from this process.
         os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
-        import torch
-
-        if not torch.cuda.is_available():
-            raise ValueError("no CUDA device is visible to this process; run a cpu worker here")
+        _check_gpu()
     settings = get_settings()
     # A worker the storage refuses would take jobs only to spend their runs failing; an outage, though, may pass.
     if (refused := storage_from_settings(settings).refused()) is not None:

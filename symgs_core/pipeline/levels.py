@@ -18,8 +18,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
-from torch import Tensor
 from scipy.spatial import cKDTree
+from torch import Tensor
 
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig

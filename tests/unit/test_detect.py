@@ -224,15 +224,6 @@ def test_config_rejects_bad_values() -> None:
         DetectConfig(pair_budget=0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_same_code_on_cuda() -> None:
-    s = synthetic_scene("global", n=3000, seed=0, clutter=0.3)
-    (cpu,) = detect(s.scene, DetectConfig(max_mirrors=1))
-    (gpu,) = detect(s.scene.to("cuda"), DetectConfig(max_mirrors=1))
-    assert cpu.plane.angle_deg(gpu.plane) < 0.05
-    assert gpu.left.device.type == "cuda"
-
-
 @pytest.mark.realdata
 def test_playbot_left_right_plane() -> None:
     from symgs_core.ply import load_scene

@@ -326,6 +326,7 @@ def test_kernels_compile_without_a_writable_cache(tmp_path) -> None:
     assert done.stdout.split() == ["[[1,", "6,", "1,", "6]]", "[0,", "0,", "0,", "0]"]
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the gsplat backend needs a CUDA device")
 def test_gsplat_backend_matches_cpu_backend() -> None:
     pytest.importorskip("gsplat", reason="gsplat (the 'gpu' extra) is not installed")
