@@ -95,24 +95,31 @@ def child(args: argparse.Namespace) -> None:
 
     config = CompressConfig.for_preset("balanced", device=args.device, pictures=False)
     cuda = args.device == "cuda"
-    profiler = None
-    if args.profile:
+    profiler = host = None
+    if args.profile:  # the device's kernels (torch.profiler) and the host's Python functions (cProfile)
+        import cProfile
+
         from torch.profiler import ProfilerActivity, profile
 
         activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
-        profiler = profile(activities=activities)
+        profiler, host = profile(activities=activities), cProfile.Profile()
         profiler.__enter__()
+        host.enable()
     t0 = time.perf_counter()
     result = compress(args.scene, config=config)
     if cuda:
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    if profiler is not None:
+    if profiler is not None and host is not None:
+        import pstats
+
+        host.disable()
         profiler.__exit__(None, None, None)
         averages = profiler.key_averages()
         key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
-        print(averages.table(sort_by=key, row_limit=20, max_name_column_width=60), file=sys.stderr)
-        print(averages.table(sort_by="self_cpu_time_total", row_limit=20, max_name_column_width=60), file=sys.stderr)
+        print(averages.table(sort_by=key, row_limit=25, max_name_column_width=60), file=sys.stderr)
+        print(averages.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=60), file=sys.stderr)
+        pstats.Stats(host, stream=sys.stderr).sort_stats("cumulative").print_stats(60)
     report = result.report
     print("RESULT " + json.dumps({
         "wall": wall,

@@ -84,7 +84,7 @@ def render_gsplat_many(
                 sh_degree=sh_degree,
                 packed=False,
                 tile_size=TILE_SIZE,
-                backgrounds=bg.expand(len(batch), 3),
+                backgrounds=bg[None].repeat(len(batch), 1),  # [C, 3]
                 render_mode="RGB+ED",
                 rasterize_mode="classic",
             )
