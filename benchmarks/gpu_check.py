@@ -136,14 +136,18 @@ def child(args: argparse.Namespace) -> None:
     }))  # fmt: skip
 
 
+def _env() -> dict[str, str]:
+    """This environment, with the project first on the children's path (before what the caller put there)."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+
+
 def run_child(scene: Path, device: str, *, limit: float, profile: bool = False) -> dict:
     argv = [sys.executable, __file__, "--child", "--scene", str(scene), "--device", device]
     if profile:
         argv.append("--profile")
     t0 = time.perf_counter()
     try:
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=max(limit, 1.0),
-                              env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=max(limit, 1.0), env=_env())
     except subprocess.TimeoutExpired:
         return {"error": f"did not finish within {limit:.0f} s"}
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
@@ -198,12 +202,12 @@ class Run:
 def kernels() -> dict:
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "symgs_core.render.gpu", "--build"], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+                          env=_env())  # fmt: skip
     build = time.perf_counter() - t0
     if done.returncode != 0:
         return {"ok": False, "error": done.stderr.strip()[-2000:]}
     check = subprocess.run([sys.executable, "-m", "symgs_core.render.gpu"], capture_output=True, text=True,
-                           env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+                           env=_env())  # fmt: skip
     return {"ok": check.returncode == 0, "build_s": build, "check": (check.stdout + check.stderr).strip()}
 
 
@@ -213,7 +217,7 @@ def cuda_tests(out: Path) -> dict:
     tests = sorted((ROOT / "tests").rglob("test_*.py"))
     files = [str(p.relative_to(ROOT)) for p in tests if "pytest.mark.cuda" in p.read_text()]
     done = subprocess.run([sys.executable, "-m", "pytest", "-m", "cuda", "-q", "-p", "no:cacheprovider", *files],
-                          capture_output=True, text=True, cwd=ROOT)  # fmt: skip
+                          capture_output=True, text=True, cwd=ROOT, env=_env())  # fmt: skip
     (out / "cuda_tests.txt").write_text(done.stdout + done.stderr)
     summary = (done.stdout.strip().splitlines() or ["no output"])[-1]
     return {"ok": done.returncode == 0, "summary": summary}

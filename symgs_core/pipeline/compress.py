@@ -128,7 +128,7 @@ def compress(
         views = dataset_views(images, source, fit=config.fit_views, eval=config.eval_views,
                               resolution=config.eval_resolution, background=background)  # fmt: skip
         backdrop = photographed_backdrop(views.fit)
-        if backdrop is not None and float((backdrop - background.cpu()).abs().max()) > BACKDROP_SAME:
+        if backdrop is not None and float((backdrop.to(background) - background).abs().max()) > BACKDROP_SAME:
             # Every render of the job (training, fitting, evaluation) draws the upload on the photographs' backdrop.
             background = backdrop.to(device)
             views = views.on(background)

@@ -12,6 +12,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ..devices import HOST
 from ..mirror import reflect
 from ..scene import GaussianScene
 from ..sh import C0
@@ -31,7 +32,7 @@ def colour_mismatch(
     mean of its nearest reflected left Gaussians; and per left Gaussian [L], the position in ``right`` of the right
     Gaussian nearest to its reflection."""
     if left.numel() == 0 or right.numel() == 0:
-        return torch.zeros(right.numel()), torch.zeros(left.numel(), dtype=torch.long)
+        return torch.zeros(right.numel(), device=HOST), torch.zeros(left.numel(), dtype=torch.long, device=HOST)
     with torch.no_grad():
         mirrored = reflect(scene.select(left).detach().to("cpu"), normal.cpu(), offset)
         dropped = scene.select(right).detach().to("cpu")

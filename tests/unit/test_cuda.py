@@ -19,7 +19,7 @@ pytestmark = [
     pytest.mark.cuda,
     pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"),
 ]
-SMALL = {"iterations": 40, "train_views": 8, "fit_views": 4, "eval_views": 4, "resolution": 64, "eval_resolution": 64,
+SMALL = {"iterations": 20, "train_views": 4, "fit_views": 2, "eval_views": 2, "resolution": 48, "eval_resolution": 48,
          "max_levels": 2, "pictures": True}  # fmt: skip
 
 
@@ -31,7 +31,7 @@ def _gsplat() -> None:
 @pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
 def test_a_mirrored_scene_of_every_sh_degree_compresses_on_cuda_as_on_the_cpu(sh_degree: int) -> None:
     """Twins with a little noise: the mirror is found, fine-tuned and kept on both devices, and the archives agree."""
-    scene = synthetic_scene("global", n=3000, seed=1, sh_degree=sh_degree, noise=0.002).scene
+    scene = synthetic_scene("global", n=2000, seed=1, sh_degree=sh_degree, noise=0.002).scene
     config = CompressConfig.for_preset("balanced", **SMALL)
     on_cpu = compress(scene, config=replace(config, device="cpu")).report
     result = compress(scene, config=replace(config, device="cuda"))
@@ -45,7 +45,7 @@ def test_a_mirrored_scene_of_every_sh_degree_compresses_on_cuda_as_on_the_cpu(sh
 
 
 def test_a_job_with_photographs_fine_tunes_on_cuda(tmp_path) -> None:
-    upload = photographed("global", tmp_path, n=3000, photos=16, tests=4, resolution=64, sh_degree=3)
+    upload = photographed("global", tmp_path, n=2000, photos=8, tests=2, resolution=48, sh_degree=3)
     config = CompressConfig.for_preset("balanced", **{**SMALL, "max_levels": 1, "device": "cuda"})
     report = compress(upload, images=tmp_path, config=config).report
     assert report.cameras.evaluation.source == "photographs"
