@@ -8,10 +8,11 @@ Steps, each timed and each allowed to fail without stopping the rest (the summar
 2. the CUDA tests (``pytest -m cuda``);
 3. one job through the API: Redis, ``symgs serve`` and ``symgs worker --mode gpu`` on this machine, a generated SH
    degree 3 scene with a planted mirror, ``device: cuda``; it must succeed and keep a mirror level;
-4. the timing table: 125k, 500k and 1M Gaussians made of turned copies of ``--base`` (the playbot capture, SH degree
+4. every real scene named by ``--real`` (``.ply`` or zstd-compressed ``.ply.zst``) compressed on CUDA;
+5. the timing table: 125k, 500k and 1M Gaussians made of turned copies of ``--base`` (the playbot capture, SH degree
    2, in ``make gpu-check``), preset ``balanced``, each compressed on CUDA and on this machine's CPU in a fresh
-   process: seconds per stage, wall time, peak GPU and host memory, bytes and evaluation PSNR side by side;
-5. every real scene named by ``--real`` (``.ply`` or zstd-compressed ``.ply.zst``) compressed on CUDA;
+   process (``--cpu-sizes``: the sizes whose CPU run fits the budget): seconds per stage, wall time, peak GPU and
+   host memory, bytes and evaluation PSNR side by side;
 6. where time is left, ``torch.profiler`` over the largest size's CUDA job: where the GPU's and the host's time go.
 
 It writes the Markdown block that BENCHMARKS.md holds between ``<!-- bench:gpu -->`` markers, with the GPU's name;
@@ -255,7 +256,8 @@ def api_job(work: Path, mode: str = "gpu") -> dict:
         stack.cleanup()
 
 
-def timing(run: Run, work: Path, labels: list[str], profile_label: str | None, base_path: Path | None) -> dict:
+def timing(run: Run, work: Path, labels: list[str], cpu_labels: set[str], profile_label: str | None,
+           base_path: Path | None) -> dict:  # fmt: skip
     from symgs_core.ply import save_scene
 
     base = base_scene(base_path)
@@ -270,8 +272,9 @@ def timing(run: Run, work: Path, labels: list[str], profile_label: str | None, b
         row: dict = {"label": label, "n": len(scene)}
         row["cuda"] = run_child(path, "cuda", limit=run.left() - 20)
         run.say(f"  {label} cuda: {_brief(row['cuda'])}")
-        row["cpu"] = run_child(path, "cpu", limit=run.left() - 20)
-        run.say(f"  {label} cpu: {_brief(row['cpu'])}")
+        if label in cpu_labels:
+            row["cpu"] = run_child(path, "cpu", limit=run.left() - 20)
+            run.say(f"  {label} cpu: {_brief(row['cpu'])}")
         rows.append(row)
         path.unlink()
     found = {"rows": rows}
@@ -279,7 +282,7 @@ def timing(run: Run, work: Path, labels: list[str], profile_label: str | None, b
         path = work / f"timing_{profile_label}.ply"
         save_scene(timing_scene(base, SIZES[profile_label]), path)
         found["profile"] = run_child(path, "cuda", limit=run.left() - 10, profile=True).get("profile", "")
-    found["ok"] = all("error" not in r.get(d, {}) for r in rows for d in ("cuda", "cpu"))
+    found["ok"] = all("error" not in r.get(d, {}) for r in rows for d in ("cuda", "cpu") if d in r)
     if not found["ok"]:
         found["error"] = "a run failed: see its row"
     return found
@@ -341,12 +344,15 @@ def markdown(run: Run, info: dict) -> str:
             if "skipped" in row:
                 lines.append(f"| {row['label']} | - | skipped: {row['skipped']} | | | | | | | | | |")
                 continue
-            gpu, cpu = row["cuda"], row["cpu"]
+            gpu, cpu = row["cuda"], row.get("cpu", {"skipped": "not run here: its CPU run does not fit the check's time"})
             for device, r in (("cuda", gpu), ("cpu", cpu)):
+                if "skipped" in r:
+                    lines.append(f"| {row['n']:,} | {device} | {r['skipped']} | | | | | | | | | |")
+                    continue
                 if "error" in r:
                     lines.append(f"| {row['n']:,} | {device} | FAILED: {r['error'][:160]} | | | | | | | | | |")
                     continue
-                both = "error" not in gpu and "error" not in cpu
+                both = "wall" in gpu and "wall" in cpu
                 speed = f"{cpu['wall'] / gpu['wall']:.1f}x" if both and device == "cuda" else ""
                 size = f"{gpu['bytes'] / cpu['bytes']:.4f}" if both and device == "cuda" else ""
                 dpsnr = f"{gpu['psnr'] - cpu['psnr']:+.3f}" if both and device == "cuda" else ""
@@ -413,6 +419,7 @@ def main() -> int:
     parser.add_argument("--real", type=Path, nargs="*", default=[],
                         help="real scenes (.ply or .ply.zst) to compress on CUDA")  # fmt: skip
     parser.add_argument("--sizes", default="125k,500k,1M", help=f"timing table sizes, of {', '.join(SIZES)}")
+    parser.add_argument("--cpu-sizes", help="sizes also run on the CPU (default: every size)")
     parser.add_argument("--base", type=Path, help="the timing table's base scene (default: a generated one)")
     parser.add_argument("--profile-size", default="500k", help="size profiled at the end ('' for none)")
     parser.add_argument("--budget", type=float, default=480.0, help="seconds the whole check may take")
@@ -435,11 +442,13 @@ def main() -> int:
         run.step("cuda tests", lambda: cuda_tests(args.out), needs=60)
     if "api" not in skip:
         run.step("api job", lambda: api_job(work), needs=45)
-    if "timing" not in skip:
-        labels = [s for s in args.sizes.split(",") if s]
-        run.step("timing", lambda: timing(run, work, labels, args.profile_size or None, args.base), needs=60)
     if "real" not in skip and args.real:
         run.step("real scenes", lambda: real_scenes(run, args.real, work), needs=30)
+    if "timing" not in skip:
+        labels = [s for s in args.sizes.split(",") if s]
+        cpu_labels = set(labels if args.cpu_sizes is None else args.cpu_sizes.split(","))
+        run.step("timing", lambda: timing(run, work, labels, cpu_labels, args.profile_size or None, args.base),
+                 needs=60)  # fmt: skip
     block = markdown(run, info)
     (args.out / "gpu.md").write_text(block)
     found = {"machine": info, "steps": run.steps}
