@@ -344,7 +344,8 @@ def markdown(run: Run, info: dict) -> str:
             if "skipped" in row:
                 lines.append(f"| {row['label']} | - | skipped: {row['skipped']} | | | | | | | | | |")
                 continue
-            gpu, cpu = row["cuda"], row.get("cpu", {"skipped": "not run here: its CPU run does not fit the check's time"})
+            not_run = {"skipped": "not run here: its CPU run does not fit the check's time"}
+            gpu, cpu = row["cuda"], row.get("cpu", not_run)
             for device, r in (("cuda", gpu), ("cpu", cpu)):
                 if "skipped" in r:
                     lines.append(f"| {row['n']:,} | {device} | {r['skipped']} | | | | | | | | | |")
