@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..files import whole_file
+from symgs_core.files import whole_file
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.py; set before torch loads
 

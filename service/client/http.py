@@ -15,8 +15,7 @@ from typing import Any, TypeVar
 import httpx
 
 from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
-
-from ..files import whole_file
+from symgs_core.files import whole_file
 
 T = TypeVar("T")
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
