@@ -120,12 +120,12 @@ def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI erro
     def wrapped(args: argparse.Namespace) -> int:
         import httpx
 
-        from ..client import ApiClientError
+        from ..client import ApiClientError, UnsafeArtifactName
         from .parser import CliError
 
         try:
             return fn(args)
-        except ApiClientError as exc:
+        except (ApiClientError, UnsafeArtifactName) as exc:
             raise CliError(str(exc)) from None
         except httpx.TransportError as exc:
             raise CliError(f"cannot reach {args.server}: {exc}") from None
