@@ -41,8 +41,8 @@ _URL = re.compile(r"^s3://(?P<bucket>[a-z0-9][a-z0-9.-]{1,61}[a-z0-9])(?:/(?P<pr
 PART_BYTES = 8 << 20  # multipart threshold and part size (S3's minimum part is 5 MiB)
 TRANSFERS = 8  # files moved at once when a job's folder goes up or down
 _TOUCH_EVERY_S = 60.0  # a workspace in use is marked fresh this often, so a sweep never takes it
-# Characters an XML 1.0 document cannot carry as they are (its Char production, less the CR and TAB that parsers
-# normalise away).
+# Characters of a key that DeleteObjects' XML body cannot carry as they are: those outside XML 1.0's Char production,
+# and the control characters it admits but a parser may change (a carriage return reads back as a line feed).
 _NOT_IN_XML = re.compile("[^\n\u0020-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
 
 

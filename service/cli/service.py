@@ -105,8 +105,9 @@ def _backlog(descriptors: int, max_pending: int) -> int:
     """The listen backlog, which is also how many connections asyncio accepts at once before any of them is seen
     (and those past ``max_pending`` closed): a burst of uvicorn's 2,048 exhausts the descriptors of a 1,024-descriptor
     process, and on "Too many open files" asyncio stops accepting for a second at a time while a flood refills the
-    queue. Two bursts may come before the first one's closed connections free their descriptors: each takes at most
-    half of what is left beside the connections waiting for their head and the process's own files."""
+    queue. asyncio accepts a burst in one turn of its loop, makes the connections' protocols in the next and connects
+    them in the one after, so three bursts may be open before the first one's extra connections are closed: each takes
+    at most a third of the descriptors left beside the connections waiting for their head and the process's own."""
     return min(2048, max(16, (descriptors - max_pending - _OWN_FILES) // 3))
 
 
