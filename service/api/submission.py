@@ -19,7 +19,7 @@ from symgs_core.ply_header import PlyError, PlyHeader, read_header
 from worker.celery_app import send_compress
 from worker.routing import choose_queue
 from worker.settings import Settings
-from worker.storage import Storage, StorageError, stored_name_problem
+from worker.storage import Storage, StorageError
 from worker.store import JobRecord, JobStore
 
 from .archives import ArchiveLimits, extract_dataset
@@ -69,10 +69,7 @@ def fingerprint(params: JobParams, upload: Upload) -> str:
 
 
 def _check(upload: Upload, settings: Settings) -> tuple[dict, dict | None, str | None]:
-    """The blocking checks, run in a worker thread: the scene's name, the PLY header, the dataset archive."""
-    # Kept in the job and shown back (the dashboard, `symgs status`): held to the storage's rule for names.
-    if (problem := stored_name_problem(upload.scene_filename)) is not None:
-        raise ApiError(422, "bad_name", f"the scene's file name {upload.scene_filename[:80]!r} {problem}; rename it")
+    """The blocking checks, run in a worker thread: the PLY header, the dataset archive."""
     header = check_scene(upload.scene, max_gaussians=settings.max_gaussians, name=upload.scene_filename)
     scene = {
         "filename": upload.scene_filename, "bytes": upload.scene_bytes, "gaussians": header.count,
