@@ -10,7 +10,9 @@ rebuilds it. Mutations come in two families:
     crc   structure-aware, then re-framed with every checksum, offset and length recomputed, so each reaches the
           validation or decoder it targets: a header value replaced (scaled by powers of ten, negated, zeroed, made
           huge, tiny, of another type), a section payload's bytes changed, a payload's zstd frame decompressed,
-          changed and recompressed, or two sections' payloads swapped.
+          changed and recompressed, two sections' payloads swapped, or an archive that claims far more than it
+          holds (hundreds of thousands of Gaussians in a few kilobytes of zeros, or level bits that expand them
+          a hundredfold): refused before they are decoded, ``disproportionate``.
 
 Every mutant is decoded (``decode_archive``), expanded through its levels and, when accepted, written in every
 export format. Outcomes: ``refused`` (ArchiveError, counted by code; or ValueError from an export writer that
@@ -236,14 +238,59 @@ def mutate_swap(rng: np.random.Generator, seed: bytes) -> bytes:
     return join(header, payloads)
 
 
+def _zeros(size: int) -> bytes:
+    """One zstd frame, declaring its size, of ``size`` zero bytes: a few dozen bytes a megabyte."""
+    writer = zstandard.ZstdCompressor(level=1).compressobj(size=size)
+    block = bytes(1 << 20)
+    return b"".join(writer.compress(block[: min(len(block), size - at)]) for at in range(0, size, len(block))) + (
+        writer.flush()
+    )
+
+
+def claiming(count: int, sh_degree: int, planes: list[dict[str, Any]], *, bits: bool = True) -> bytes:
+    """A valid archive of ``count`` stored Gaussians whose every attribute is zero, with each level's bit set for all
+    of them (``bits``) or none: a few kilobytes that claim millions of Gaussians, or billions once expanded."""
+    from symgs_core.codec.masks import PACKED
+    from symgs_core.scene import SH_REST_COUNT
+
+    columns = {"means": 3, "quats": 4, "scales": 3, "opacities": 1, "sh_dc": 3, "sh_rest": 3 * SH_REST_COUNT[sh_degree]}
+    sections, payloads = [], []
+    for name, width in columns.items():
+        payloads.append(_zeros(4 * count * width))
+        sections.append({"name": name, "codec": "f32-zstd", "raw_length": 4 * count * width,
+                         "params": {"layout": "rows"}})  # fmt: skip
+    column = np.packbits(np.full(count, bits)).tobytes()
+    raw = b"".join(bytes([PACKED]) + column for _ in planes)
+    payloads.append(zstandard.ZstdCompressor(level=3).compress(raw))
+    sections.append({"name": "bits", "codec": "mask-zstd", "raw_length": len(raw), "params": {}})
+    from symgs_core.cameras import COORDINATE_CONVENTION
+
+    header = {"count": count, "sh_degree": sh_degree, "coordinate_convention": COORDINATE_CONVENTION,
+              "codec": "lossless", "planes": planes, "sections": sections, "meta": {}}  # fmt: skip
+    return join(header, payloads)
+
+
+def mutate_claim(rng: np.random.Generator, seed: bytes) -> bytes:
+    """The seed's planes and SH degree in an archive that claims far more than it holds: hundreds of thousands of
+    stored Gaussians in a few kilobytes, or a few tens of thousands whose level bits, all set, expand them a
+    hundredfold."""
+    header, _ = split(seed)
+    planes = header["planes"] or [{"normal": [1.0, 0.0, 0.0], "offset": 0.0}]
+    if rng.random() < 0.5:
+        return claiming(int(rng.integers(200_000, 1_000_000)), header["sh_degree"], planes, bits=False)
+    extra = [{"normal": [0.0, 1.0, 0.0], "offset": 0.1 * i} for i in range(int(rng.integers(7, 10)) - len(planes))]
+    return claiming(int(rng.integers(20_000, 60_000)), header["sh_degree"], planes + extra)
+
+
 MUTATORS: dict[str, tuple[str, Callable[[np.random.Generator, bytes], bytes]]] = {
     "bytes": ("raw", _bytes),
     "header": ("crc", mutate_header),
     "payload": ("crc", mutate_payload),
     "inner": ("crc", mutate_inner),
     "swap": ("crc", mutate_swap),
+    "claim": ("crc", mutate_claim),
 }
-WEIGHTS = {"bytes": 0.3, "header": 0.3, "payload": 0.2, "inner": 0.15, "swap": 0.05}
+WEIGHTS = {"bytes": 0.3, "header": 0.3, "payload": 0.2, "inner": 0.13, "swap": 0.05, "claim": 0.02}
 
 
 def mutant(index: int, seed: int, seeds: tuple[tuple[str, bytes], ...]) -> tuple[str, str, bytes]:

@@ -24,6 +24,7 @@ from .store import JobStore
 
 log = logging.getLogger(__name__)
 STAGING_MAX_AGE_S = 6 * 3600  # an upload still staging after this long belongs to an API process that died
+QUARANTINE_S = 3600  # an expired job whose files would not delete is tried again this much later
 
 
 @dataclass
@@ -33,6 +34,7 @@ class SweepReport:
     failed: list[str] = field(default_factory=list)
     cancelled: list[str] = field(default_factory=list)
     expired: list[str] = field(default_factory=list)
+    quarantined: list[str] = field(default_factory=list)  # expired, but their files would not delete: set aside
     abandoned: list[str] = field(default_factory=list)  # files of unrecorded submissions, deleted late
 
 
@@ -120,23 +122,43 @@ def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report
         report.rerouted.append(job_id)
 
 
+def _deleted(storage: Storage, owner: str, job_id: str) -> bool:
+    """Delete a job's files: True when they are gone; False, logged, when they would not go although the storage
+    answers (the job's own fault: a name the storage refuses, a file it may not remove). StorageError when the storage
+    does not answer: an outage, under which every job would fail alike, for the next sweep to try again."""
+    try:
+        storage.delete(owner=owner, job_id=job_id)
+    except StorageError as exc:
+        if not storage.reachable():
+            raise
+        log.error("job %s of %s: its files could not be deleted (%s)", job_id, owner, exc)
+        return False
+    return True
+
+
 def delete_abandoned(store: JobStore, storage: Storage, report: SweepReport) -> None:
-    """Delete the files of submissions refused while the storage was failing, which the API could not delete then."""
+    """Delete the files of submissions refused while the storage was failing, which the API could not delete then;
+    those that would not go stay listed, for the next sweep."""
     for owner, job_id in store.abandoned():
-        try:
-            storage.delete(owner=owner, job_id=job_id)
-        except StorageError:
-            return  # still failing: the next sweep tries again
-        store.forget_abandoned(owner, job_id)
-        report.abandoned.append(job_id)
+        if _deleted(storage, owner, job_id):
+            store.forget_abandoned(owner, job_id)
+            report.abandoned.append(job_id)
 
 
 def expire(store: JobStore, storage: Storage, settings: Settings, report: SweepReport) -> None:
-    """Delete jobs (records and files) that finished more than ``job_ttl`` seconds ago, and stale uploads."""
-    for job_id in store.finished_before(time.time() - settings.job_ttl):
+    """Delete jobs (records and files) that finished more than ``job_ttl`` seconds ago, and stale uploads.
+
+    A job whose files would not delete is set aside (``quarantine``) and tried again ``QUARANTINE_S`` later, and the
+    sweep goes on: the oldest job comes first, so one that fails on every try kept every tenant's jobs, and the
+    staging uploads, from ever expiring."""
+    now = time.time()
+    for job_id in store.finished_before(now - settings.job_ttl) + store.quarantined_until(now):
         record = store.get(job_id)
-        if record is not None:
-            storage.delete(owner=record.owner, job_id=job_id)
+        if record is not None and not _deleted(storage, record.owner, job_id):
+            store.quarantine(job_id, now + QUARANTINE_S)
+            report.quarantined.append(job_id)
+            log.error("job %s set aside; its deletion is tried again in %d s", job_id, QUARANTINE_S)
+            continue
         store.delete(job_id)
         report.expired.append(job_id)
     storage.sweep_staging(STAGING_MAX_AGE_S)

@@ -34,6 +34,12 @@ class Settings(BaseSettings):
     max_archive_entries: int = Field(20_000, gt=0)
     max_extracted_bytes: int = Field(8 << 30, gt=0)
 
+    # The API's connections (``service.api.connections``): seconds a request's head may take to arrive whole, seconds
+    # a body may stall while the server waits for it, and connections that may wait for their head at once.
+    header_timeout: float = Field(10.0, gt=0)
+    body_timeout: float = Field(60.0, gt=0)
+    max_pending_connections: int = Field(256, ge=1)
+
     # Job lifetime and worker limits, in seconds.
     job_ttl: int = Field(7 * 24 * 3600, gt=0)  # finished jobs and their files are deleted this long after the end
     soft_time_limit: int = Field(6 * 3600, gt=0)  # the job fails with code time_limit

@@ -36,6 +36,10 @@ _ARTIFACT = re.compile(rf"^(result\.symgs|{_EXPORTED}|report\.json|charts/[A-Za-
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 _OWNER = re.compile(r"^[0-9a-z_-]{1,64}$")
 CHUNK_BYTES = 1 << 20  # read size when a result is streamed to a client
+# Stored names (a dataset's files, below a job's upload/images/) become object keys and file names as they are: S3
+# keys are at most 1024 bytes, whole, prefix and job folder included; a file name, 255 bytes on the disks caches use.
+MAX_NAME_BYTES = 512
+MAX_PART_BYTES = 255
 
 
 class StorageError(OSError):
@@ -70,6 +74,26 @@ def check_artifact(name: str) -> str:
     if not _ARTIFACT.match(name):
         raise ValueError(f"unknown artifact name {name!r}")
     return name
+
+
+def stored_name_problem(name: str) -> str | None:
+    """Why ``name`` (a path below a job's folder, parts split by "/") may not name a stored file; None when it may.
+
+    The one rule for every name a client chooses: printable characters only, none of the control characters, format
+    characters, surrogates or non-characters that ``str.isprintable`` leaves out (S3 carries a key raw in the XML of
+    DeleteObjects, which XML parsers refuse, or read back changed: a carriage return comes back a line feed), and a
+    bounded length."""
+    parts = name.split("/")
+    if any(part in ("", ".", "..") for part in parts):
+        return "has an empty, '.' or '..' folder"
+    if not name.isprintable():
+        bad = next(c for c in name if not c.isprintable())
+        return f"holds the character U+{ord(bad):04X}, which is not printable"
+    if len(name.encode()) > MAX_NAME_BYTES:
+        return f"is longer than {MAX_NAME_BYTES} bytes"
+    if any(len(part.encode()) > MAX_PART_BYTES for part in parts):
+        return f"has a folder or file name longer than {MAX_PART_BYTES} bytes"
+    return None
 
 
 def is_artifact(name: str) -> bool:

@@ -41,6 +41,9 @@ _URL = re.compile(r"^s3://(?P<bucket>[a-z0-9][a-z0-9.-]{1,61}[a-z0-9])(?:/(?P<pr
 PART_BYTES = 8 << 20  # multipart threshold and part size (S3's minimum part is 5 MiB)
 TRANSFERS = 8  # files moved at once when a job's folder goes up or down
 _TOUCH_EVERY_S = 60.0  # a workspace in use is marked fresh this often, so a sweep never takes it
+# Characters of a key that DeleteObjects' XML body cannot carry as they are: those outside XML 1.0's Char production,
+# and the control characters it admits but a parser may change (a carriage return reads back as a line feed).
+_NOT_IN_XML = re.compile("[^\n\u0020-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
 
 
 def parse_url(url: str) -> tuple[str, str]:
@@ -232,10 +235,17 @@ class S3Storage(Storage):
 
     def delete(self, *, owner: str, job_id: str) -> None:
         prefix = self.key(owner, job_id) + "/"
-        keys = [{"Key": obj["Key"]} for obj in self._list(prefix)]
-        for start in range(0, len(keys), 1000):  # DeleteObjects takes at most 1000 keys
+        keys = [obj["Key"] for obj in self._list(prefix)]
+        # DeleteObjects carries its keys raw in an XML body: a key XML cannot hold (stored before names were checked
+        # at upload) fails the whole request, or one with a carriage return reads back as another key and stays.
+        # Those go one by one, in the request's path.
+        batch = [{"Key": key} for key in keys if not _NOT_IN_XML.search(key)]
+        for start in range(0, len(batch), 1000):  # DeleteObjects takes at most 1000 keys
             with _s3_errors(f"deleting job {job_id}"):
-                self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": keys[start : start + 1000]})
+                self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch[start : start + 1000]})
+        for key in (key for key in keys if _NOT_IN_XML.search(key)):
+            with _s3_errors(f"deleting job {job_id}"):
+                self.client.delete_object(Bucket=self.bucket, Key=key)
         # A worker killed while a file went up in parts leaves those parts, which no listing of objects shows: a
         # deleted job must keep none of its bytes, nor wait for the sweep of stale uploads hours later.
         for upload in self._unfinished(prefix):

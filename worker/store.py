@@ -9,6 +9,7 @@ Keys (prefix ``symgs:``)::
     jobs                     zset id -> created_at (all jobs)
     jobs:state:<state>       zset id -> created_at
     jobs:finished            zset id -> finished_at (for expiry)
+    jobs:quarantine          zset id -> time of the next try: expired jobs whose files would not delete
     owner:<o>:jobs, owner:<o>:state:<state>   zset id -> created_at (listing per API key)
     job:<id>:resent          flag: a sweep sent the queued job's message again (maintenance.recover_dropped)
     idem:<o>:<key hash>      id of the job created with that Idempotency-Key, and its request's fingerprint
@@ -290,6 +291,7 @@ class JobStore:
             p.delete(job_key(job_id), events_key(job_id), f"{P}job:{job_id}:cancel", f"{P}job:{job_id}:lease")
             p.zrem(f"{P}jobs", job_id)
             p.zrem(f"{P}jobs:finished", job_id)
+            p.zrem(f"{P}jobs:quarantine", job_id)
             for state in STATES:
                 p.zrem(f"{P}jobs:state:{state}", job_id)
             if h:
@@ -303,6 +305,18 @@ class JobStore:
 
     def finished_before(self, cutoff: float) -> list[str]:
         return list(self.r.zrangebyscore(f"{P}jobs:finished", "-inf", cutoff))
+
+    def quarantine(self, job_id: str, until: float) -> None:
+        """Set an expired job whose files would not delete aside until ``until``, out of the expiry queue, whose
+        oldest jobs come first: retried then, it keeps no other job from expiring meanwhile."""
+        with self.r.pipeline(transaction=True) as p:
+            p.zrem(f"{P}jobs:finished", job_id)
+            p.zadd(f"{P}jobs:quarantine", {job_id: until})
+            p.execute()
+
+    def quarantined_until(self, cutoff: float) -> list[str]:
+        """Jobs set aside by ``quarantine`` whose time to be tried again is ``cutoff`` or earlier."""
+        return list(self.r.zrangebyscore(f"{P}jobs:quarantine", "-inf", cutoff))
 
     def count_by_state(self) -> dict[str, int]:
         with self.r.pipeline(transaction=False) as p:

@@ -21,6 +21,7 @@ from worker.storage_backend import storage_from_settings
 from worker.store import JobStore
 
 from ..dashboard.routes import router as dashboard_router
+from ..docs.routes import router as docs_router
 from .allow import AllowedMethods
 from .errors import install_handlers
 from .metrics import make_registry
@@ -55,6 +56,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=API_VERSION,
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # FastAPI's pages load their scripts from a CDN: ours are served from shipped files
+        redoc_url=None,
+        swagger_ui_oauth2_redirect_url=None,
         openapi_tags=[
             {"name": "jobs", "description": "Submit, inspect, list, cancel and delete compression jobs"},
             {"name": "events", "description": "Live progress as Server-Sent Events"},
@@ -74,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (jobs, presets, events, results, ops):
         app.include_router(module.router)
     app.include_router(dashboard_router)
+    app.include_router(docs_router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

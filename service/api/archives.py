@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Literal
 
+from worker.storage import stored_name_problem
+
 from .errors import ApiError
 
 CHUNK = 1 << 20
@@ -84,6 +86,9 @@ class Entry:
 
 def _entry(name: str, *, is_dir: bool, is_file: bool, size: int) -> Entry:
     parts = tuple(safe_parts(name))
+    # Each file is stored under its name (an object key on S3): the storage's one rule for names, at the door.
+    if parts and (problem := stored_name_problem("/".join(parts))) is not None:
+        raise _invalid("bad_name", f"archive entry {name[:80]!r} {problem}; rename it")
     if not (is_dir or is_file):
         raise _invalid("unsafe_entry", f"archive entry {name[:80]!r} is a link or a special file")
     return Entry(name, parts, is_dir, 0 if is_dir else size)

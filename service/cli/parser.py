@@ -8,8 +8,6 @@ import os
 import sys
 from pathlib import Path
 
-from ..files import whole_file
-
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see symgs_core/__init__.py; set before torch loads
 
 # Modules that define `register(subparsers)`; each subcommand sets `func(args) -> int` as its handler.
@@ -89,6 +87,8 @@ def cannot_write(option: str, path: Path, exc: OSError) -> CliError:
 
 def write_output(option: str, path: Path, data: bytes) -> None:
     """Write a whole output file (``whole_file``), or refuse in one line."""
+    from symgs_core.files import whole_file
+
     try:
         with whole_file(path) as out:
             out.write(data)

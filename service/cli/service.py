@@ -11,6 +11,7 @@ from itertools import combinations
 from pathlib import Path
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
+_OWN_FILES = 32  # descriptors the API keeps besides its clients' connections: Redis, storage, logs, libraries
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -79,8 +80,35 @@ def serve(args: argparse.Namespace) -> int:
             "no API keys: set SYMGS_API_KEYS to comma-separated Bearer keys (e.g. SYMGS_API_KEYS=$(openssl rand -hex "
             "24)), or SYMGS_AUTH=none to run without authentication"
         )
-    uvicorn.run("service.api.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers)
+    descriptors = _raise_open_files_limit()
+    uvicorn.run(
+        "service.api.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
+        http="service.api.connections:GuardedH11Protocol",  # deadlines for heads and bodies, a bound on waiting
+        backlog=_backlog(descriptors, settings.max_pending_connections),
+    )  # fmt: skip
     return 0
+
+
+def _raise_open_files_limit() -> int:
+    """Every connection holds a descriptor: take the most the system allows this process, not the soft limit (often
+    1,024), which a few hundred clients and the API's own files reach. Returns the limit now in force."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = min(hard, 1 << 20) if hard != resource.RLIM_INFINITY else 1 << 20
+    if soft < target:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    return max(soft, target)
+
+
+def _backlog(descriptors: int, max_pending: int) -> int:
+    """The listen backlog, which is also how many connections asyncio accepts at once before any of them is seen
+    (and those past ``max_pending`` closed): a burst of uvicorn's 2,048 exhausts the descriptors of a 1,024-descriptor
+    process, and on "Too many open files" asyncio stops accepting for a second at a time while a flood refills the
+    queue. asyncio accepts a burst in one turn of its loop, makes the connections' protocols in the next and connects
+    them in the one after, so three bursts may be open before the first one's extra connections are closed: each takes
+    at most a third of the descriptors left beside the connections waiting for their head and the process's own."""
+    return min(2048, max(16, (descriptors - max_pending - _OWN_FILES) // 3))
 
 
 def worker(args: argparse.Namespace) -> int:
@@ -120,12 +148,12 @@ def _api_errors(fn):  # noqa: ANN001, ANN202 - turns client errors into CLI erro
     def wrapped(args: argparse.Namespace) -> int:
         import httpx
 
-        from ..client import ApiClientError
+        from ..client import ApiClientError, UnsafeArtifactName
         from .parser import CliError
 
         try:
             return fn(args)
-        except ApiClientError as exc:
+        except (ApiClientError, UnsafeArtifactName) as exc:
             raise CliError(str(exc)) from None
         except httpx.TransportError as exc:
             raise CliError(f"cannot reach {args.server}: {exc}") from None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 import uuid
 import zipfile
@@ -15,12 +16,13 @@ from typing import Any, TypeVar
 import httpx
 
 from api_schemas import TERMINAL_STATES, Job, JobEvent, JobPage
-
-from ..files import whole_file
+from symgs_core.files import whole_file
 
 T = TypeVar("T")
 # Result file name -> its path under /v1/jobs/{id}/ (charts/<name>.png keep theirs).
 _DOWNLOAD_PATHS = {"result.symgs": "result", "report.json": "report"}
+_MAX_ARTIFACT_NAME = 255
+_DRIVE = re.compile(r"^[A-Za-z]:")  # C:x is a path of its own on Windows
 # How long wait() and submit() keep trying while the API is out of reach or answers 503 (its Redis restarting, a
 # redeploy): long enough to ride out a restart, short enough that a server gone for good is reported.
 PATIENCE_S = 120.0
@@ -41,6 +43,33 @@ class ApiClientError(Exception):
 class Event:
     id: str
     event: JobEvent
+
+
+class UnsafeArtifactName(ValueError):
+    """The server listed a result file whose name would be written outside the folder asked for (an absolute path,
+    a ``..``, a backslash or a control character): nothing of the job is written."""
+
+    def __init__(self, name: str, folder: Path) -> None:
+        super().__init__(
+            f"the server listed a result file named {name[:120]!r}, which would be written outside {folder}; "
+            "nothing was downloaded"
+        )
+        self.name = name
+
+
+def artifact_path(folder: Path, name: str) -> Path:
+    """Where the result file ``name`` goes under ``folder``; UnsafeArtifactName for any name that could leave it.
+    The server's word is not trusted: over plain http anyone in the middle could put words in its mouth."""
+    parts = name.split("/")
+    if (
+        not 0 < len(name) <= _MAX_ARTIFACT_NAME
+        or not name.isprintable()
+        or "\\" in name
+        or _DRIVE.match(name)
+        or any(part in ("", ".", "..") for part in parts)
+    ):
+        raise UnsafeArtifactName(name, folder)
+    return folder.joinpath(*parts)
 
 
 def _raise_for(response: httpx.Response) -> None:
@@ -264,10 +293,9 @@ class SymgsClient:
         return self._patiently(get)
 
     def fetch(self, job_id: str, folder: str | os.PathLike[str]) -> list[Path]:
-        """Save every result file of a finished job into ``folder``; returns the paths written."""
+        """Save every result file of a finished job into ``folder``; returns the paths written. Every name the
+        server lists is checked first (``artifact_path``): one that would leave ``folder`` stops the whole fetch."""
         job = self._patiently(lambda: self.job(job_id))
         folder = Path(folder)
-        written = []
-        for name in job.artifacts:
-            written.append(self.download(job_id, name, folder / name))
-        return written
+        targets = [(name, artifact_path(folder, name)) for name in job.artifacts]
+        return [self.download(job_id, name, path) for name, path in targets]

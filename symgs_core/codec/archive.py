@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,15 +37,47 @@ _SECTION_KEYS = {"name", "codec", "offset", "length", "raw_length", "crc32", "pa
 _MAX_NAME = 64
 
 
+def physical_memory() -> int | None:
+    """Bytes of memory this machine has; None where the system does not say."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
 @dataclass(frozen=True)
 class DecodeLimits:
-    """What a reader accepts before it allocates anything; a file asking for more is refused (limit_exceeded)."""
+    """What a reader accepts before it allocates anything; a file asking for more is refused: ``limit_exceeded``
+    past a fixed limit or the memory budget, ``disproportionate`` for more Gaussians than a file of its size holds.
+
+    A count in the header costs the writer nothing: a few kilobytes of constant sections can claim millions of
+    Gaussians (zstd packs a megabyte of zeros into a few dozen bytes). Archives the pipeline writes spend 5 bytes a
+    stored Gaussian or more (BENCHMARKS, "Decoding") and expand each one a few times, so the counts allowed grow with
+    the file: ``per_byte`` Gaussians a byte, past the first ``floor``. What is left, the memory the decode and
+    expansion would take (``decode_memory``), is checked against ``max_memory_bytes`` (this machine's memory by
+    default) once the level bits, a small section, are read, before any attribute is decoded."""
 
     max_gaussians: int = 10_000_000  # stored
     max_expanded_gaussians: int = 40_000_000  # after expansion through every level
     max_levels: int = 32
     max_header_bytes: int = 1 << 20
     max_section_bytes: int = 1 << 31  # both stored and decoded size of one section
+    stored_per_byte: float = 2.0
+    expanded_per_byte: float = 8.0
+    floor: int = 1 << 16  # Gaussians any archive may hold, stored and expanded, whatever its size
+    max_memory_bytes: int | None = field(default_factory=physical_memory)  # None: no budget
+
+    def proportional(self, per_byte: float, size: int) -> int:
+        """The most Gaussians a file of ``size`` bytes may hold at ``per_byte`` a byte."""
+        return self.floor + int(per_byte * size)
+
+
+def decode_memory(stored: int, expanded: int, sh_degree: int, levels: int) -> int:
+    """About the peak bytes of decoding an archive and expanding it (``expand_archive``): the stored attributes as
+    float32, and the expanded scene three times over (each level's concatenation copies what it joins, and reflects
+    a copy of the half it mirrors), with its bit rows and origin indices."""
+    per_gaussian = 4 * (14 + 3 * SH_REST_COUNT[sh_degree])
+    return stored * per_gaussian + 3 * expanded * (per_gaussian + 8 + levels)
 
 
 @dataclass
@@ -257,6 +290,10 @@ def _validate(data: bytes, limits: DecodeLimits) -> tuple[dict[str, Any], list[P
     n = _count(header["count"], "count")
     if n > limits.max_gaussians:
         raise ArchiveError("limit_exceeded", f"{n} stored Gaussians exceed the limit of {limits.max_gaussians}")
+    if n > (most := limits.proportional(limits.stored_per_byte, len(data))):
+        raise ArchiveError(
+            "disproportionate", f"a file of {len(data)} bytes claims {n} stored Gaussians; it may hold at most {most}"
+        )
     degree = _count(header["sh_degree"], "sh_degree")
     if degree not in SH_REST_COUNT:
         raise _bad(f"sh_degree must be 0..3, got {degree}")
@@ -319,18 +356,36 @@ def expanded_count(bits: Tensor) -> int:
     return sum(int(c) << p for p, c in enumerate(popcounts.tolist()))
 
 
-def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> ArchiveContents:
-    """Inverse of ``encode_archive``; ArchiveError (with ``.code``) for any file that is not a valid archive.
-
-    Everything the header says is validated, and every section's checksum verified, before any section is decoded.
-    """
-    header, planes, sections = _validate(data, limits)
-    arrays = {s.name: _decode_section(data, s) for s in sections}
-    bits = torch.from_numpy(arrays.pop("bits"))
+def _check_expansion(bits: Tensor, sh_degree: int, size: int, limits: DecodeLimits) -> None:
+    """ArchiveError unless the Gaussians ``bits`` expand to, and the memory they would take, are within ``limits``
+    for a file of ``size`` bytes."""
     total = expanded_count(bits)
     if total > limits.max_expanded_gaussians:
         limit = limits.max_expanded_gaussians
         raise ArchiveError("limit_exceeded", f"the levels expand to {total} Gaussians, over the limit of {limit}")
+    if total > (most := limits.proportional(limits.expanded_per_byte, size)):
+        raise ArchiveError(
+            "disproportionate", f"a file of {size} bytes expands to {total} Gaussians; it may expand to at most {most}"
+        )
+    need = decode_memory(len(bits), total, sh_degree, bits.shape[1])
+    if limits.max_memory_bytes is not None and need > limits.max_memory_bytes:
+        raise ArchiveError(
+            "limit_exceeded",
+            f"decoding {len(bits)} Gaussians expanded to {total} would take about {need >> 20} MiB, over the memory "
+            f"budget of {limits.max_memory_bytes >> 20} MiB",
+        )
+
+
+def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> ArchiveContents:
+    """Inverse of ``encode_archive``; ArchiveError (with ``.code``) for any file that is not a valid archive.
+
+    Everything the header says is validated, and every section's checksum verified, before any section is decoded;
+    the level bits are decoded first, and what they expand to checked (``DecodeLimits``) before any attribute is.
+    """
+    header, planes, sections = _validate(data, limits)
+    bits = torch.from_numpy(_decode_section(data, next(s for s in sections if s.name == "bits")))
+    _check_expansion(bits, header["sh_degree"], len(data), limits)
+    arrays = {s.name: _decode_section(data, s) for s in sections if s.name != "bits"}
     stored = GaussianScene(**{k: torch.from_numpy(v) for k, v in arrays.items()})
     return ArchiveContents(stored, planes, bits, header["meta"])
 

@@ -10,7 +10,8 @@ ArchiveErrorCode = Literal[
     "truncated",  # the file ends before the data its header promises
     "bad_checksum",  # the header or a section does not match its CRC32
     "bad_header",  # the header is not valid JSON or breaks the schema (types, ranges, layout, codec parameters)
-    "limit_exceeded",  # a count or size above the reader's DecodeLimits
+    "limit_exceeded",  # a count or size above the reader's DecodeLimits, or more memory than its budget
+    "disproportionate",  # more Gaussians, stored or expanded, than a file of its size may hold (DecodeLimits)
     "unsupported_codec",  # a section names a codec this build does not know
     "trailing_data",  # bytes after the last section
     "corrupt_section",  # a section's payload does not decode to what the header describes

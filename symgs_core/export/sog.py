@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from ..codec.order import morton_codes
+from ..files import partial_file
 from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
 from ..scene import SH_REST_COUNT, GaussianScene
 
@@ -243,10 +244,12 @@ def save_sog_folder(scene: GaussianScene, meta_path: str | os.PathLike[str], **o
     folder.mkdir(parents=True, exist_ok=True)
     files = sog_files(scene, **options)
     targets = [folder / (Path(meta_path).name if name == META else name) for name in files]
-    staged = [target.with_name(f".{target.name}.partial") for target in targets]
+    staged: list[Path] = []
     try:
-        for path, data in zip(staged, files.values()):
-            path.write_bytes(data)
+        for target, data in zip(targets, files.values()):
+            with partial_file(target) as (out, partial):
+                staged.append(partial)
+                out.write(data)
         for path, target in list(zip(staged, targets))[::-1]:  # meta.json is first in ``files``: moved last
             os.replace(path, target)
     finally:

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig
+from ..files import partial_file
 from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
@@ -292,9 +293,12 @@ def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: l
         "done": done,
         "best_bytes": best_bytes,
     }
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)  # atomic: a worker killed mid-write leaves the previous checkpoint intact
+    # A temporary file of its own: two runs of one job may overlap (a worker whose lease lapsed while Redis
+    # restarted runs on until it notices), and a shared temporary name let one move the other's half-written file
+    # into place, or find it gone. Moved into place whole: a worker killed mid-write leaves the previous one intact.
+    with partial_file(path) as (out, tmp):
+        torch.save(payload, out)
+    os.replace(tmp, path)
 
 
 def _load_checkpoint(path: Path, fingerprint: str, device: torch.device):  # noqa: ANN202

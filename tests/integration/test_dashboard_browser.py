@@ -524,3 +524,28 @@ def test_a_jobs_notes_are_shown_above_its_metrics(stack, browser: Browser, tmp_p
     assert notes.count() == 1 and notes.inner_text() == job["metrics"]["notes"][0]
     assert "--images" in notes.inner_text()
     assert not watched.errors and not watched.foreign
+
+
+def test_the_api_docs_work_under_the_dashboards_policy(stack, browser: Browser, done_job: dict) -> None:  # noqa: ANN001
+    """Swagger UI from the files the service ships, under the dashboard's Content-Security-Policy: it lists every
+    operation, and its Authorize box sends the key with a request tried from the page. Nothing else is asked of
+    another host, and the policy refuses nothing it needs."""
+    watched = Watched(browser, stack.api_url)
+    page = watched.page
+    page.goto(f"{stack.api_url}/docs")
+    page.locator("#operations-operations-healthz_healthz_get").wait_for(timeout=20_000)
+    page.locator(".auth-wrapper button.authorize").click()
+    page.locator(".modal-ux input").first.fill(KEY_A)
+    page.locator(".modal-ux button.authorize").first.click()
+    page.locator(".modal-ux button.btn-done").first.click()
+    operation = page.locator("#operations-jobs-get_job_v1_jobs__job_id__get")
+    operation.locator(".opblock-summary").first.click()
+    operation.locator("button.try-out__btn").click()
+    operation.locator("input[placeholder='job_id']").fill(done_job["id"])
+    operation.locator("button.execute").click()
+    body = operation.locator(".live-responses-table .response-col_description pre").first
+    body.wait_for(timeout=10_000)
+    assert done_job["id"] in body.inner_text() and '"succeeded"' in body.inner_text()
+    page.screenshot(path=Path(stack.root) / "docs.png", full_page=False)
+    assert watched.foreign == [] and watched.errors == [], (watched.foreign, watched.errors)
+    watched.context.close()

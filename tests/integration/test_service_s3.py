@@ -5,6 +5,8 @@ empties its prefix."""
 
 from __future__ import annotations
 
+import io
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -82,6 +84,23 @@ def test_a_refused_upload_leaves_nothing_in_the_bucket(s3_stack: tuple[LocalStac
             "/v1/jobs", files={"scene": ("bad.ply", b"ply\nformat ascii 1.0\nend_header\n")}, data={"params": "{}"}
         )
     assert response.status_code == 422, response.text
+    assert server.keys() == before
+
+
+def test_a_dataset_file_name_no_key_may_carry_is_refused_at_the_door(
+    s3_stack: tuple[LocalStack, S3Server, Path], scene_path: Path
+) -> None:
+    """A name S3's DeleteObjects cannot carry made its job undeletable, and stopped expiry for every tenant."""
+    stack, server, _ = s3_stack
+    before = server.keys()
+    images = io.BytesIO()
+    with zipfile.ZipFile(images, "w") as zf:
+        zf.writestr("scene/transforms.json", '{"camera_angle_x": 0.7, "frames": []}')
+        zf.writestr("scene/notes/a\x01b.txt", "notes")
+    with client_for(stack, KEY_A) as api:
+        files = {"scene": ("scene.ply", scene_path.read_bytes()), "images": ("images.zip", images.getvalue())}
+        response = api.post("/v1/jobs", files=files, data={"params": "{}"})
+    assert response.status_code == 422 and response.json()["error"]["code"] == "bad_name", response.text
     assert server.keys() == before
 
 

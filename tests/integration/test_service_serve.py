@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
+import threading
+import time
 from pathlib import Path
 
 import httpx
@@ -41,3 +44,79 @@ def test_serve_open_when_told_so_answers_and_warns(tmp_path: Path) -> None:
     finally:
         child.stop()
     assert "authentication is OFF (SYMGS_AUTH=none)" in child.log.read_text()
+
+
+HEAD_START = b"GET /v1/jobs HTTP/1.1\r\nHost: api\r\n"
+
+
+class _SlowHeaders(threading.Thread):
+    """``count`` connections that each send a request line, then a header line now and then, never the end of the
+    head; one the server closes is opened again at once, as a patient attacker would."""
+
+    def __init__(self, port: int, count: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.count = port, count
+        self.opened = 0
+        self.halt = threading.Event()
+
+    def _connect(self) -> socket.socket:
+        sock = socket.create_connection(("127.0.0.1", self.port), timeout=0.5)
+        sock.sendall(HEAD_START)
+        self.opened += 1
+        return sock
+
+    def run(self) -> None:
+        socks: list[socket.socket | None] = [None] * self.count
+        while not self.halt.wait(0.2):
+            for i, sock in enumerate(socks):
+                try:
+                    if sock is None:
+                        socks[i] = self._connect()
+                    else:
+                        sock.sendall(b"X-Slow: 1\r\n")
+                except OSError:  # closed by the server, or a queue full for the moment: open it again next round
+                    if sock is not None:
+                        sock.close()
+                    socks[i] = None
+        for sock in socks:
+            if sock is not None:
+                sock.close()
+
+
+def test_a_slow_header_flood_does_not_lock_a_real_client_out(tmp_path: Path) -> None:
+    """400 connections sending their heads a line at a time against an API with 256 descriptors: the heads that do
+    not arrive in time, and the connections past the bound on those waiting, are closed; /healthz answers at once."""
+    port = free_port()
+    env = _env(SYMGS_API_KEYS="k1", SYMGS_STORAGE=str(tmp_path / "data"), SYMGS_HEADER_TIMEOUT="1",
+               SYMGS_BODY_TIMEOUT="1", SYMGS_MAX_PENDING_CONNECTIONS="32")  # fmt: skip
+    ulimit = ["sh", "-c", 'ulimit -n 256 && exec "$@"', "sh"]
+    child = spawn("api", [*SYMGS, "serve", "--port", str(port)], env=env, logs=tmp_path, cwd=tmp_path, wrap=ulimit)
+    url = f"http://127.0.0.1:{port}"
+    flood = _SlowHeaders(port, 400)
+    try:
+        wait_until(child, lambda: httpx.get(f"{url}/healthz", timeout=2).status_code == 200, 30, "serve")
+        flood.start()
+        time.sleep(2.5)  # the flood is in place, and the first heads have run out of time
+        assert flood.is_alive() and flood.opened > 256, flood.opened
+        for _ in range(5):
+            start = time.monotonic()
+            assert httpx.get(f"{url}/healthz", timeout=3).status_code == 200
+            assert time.monotonic() - start < 1.0
+            time.sleep(0.2)
+
+        # A head that does not arrive in time, and a body that stops coming: closed, not held.
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            sock.sendall(HEAD_START)
+            start = time.monotonic()
+            assert sock.recv(4096) == b""
+            assert time.monotonic() - start < 4
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            sock.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: api\r\nAuthorization: Bearer k1\r\nContent-Length: 1000\r\n"
+                         b"Content-Type: multipart/form-data; boundary=b\r\n\r\n--b\r\n")  # fmt: skip
+            start = time.monotonic()
+            assert sock.recv(4096) == b""
+            assert time.monotonic() - start < 4
+    finally:
+        flood.halt.set()
+        flood.join(timeout=10)
+        child.stop()

@@ -355,3 +355,24 @@ def test_not_an_archive(tmp_path: Path) -> None:
     path = tmp_path / "x.bin"
     path.write_bytes(b"hello world, not an archive")
     assert _error(lambda: extract(path, tmp_path / "out", LIMITS)).code == "bad_archive"
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["scene/notes/a\x01b.txt", "scene/notes/a\x1bb.txt", "scene/notes/a\ufffeb.txt", "scene/notes/a\rb.txt",
+     "scene/a\u202eb.txt", "scene/" + "n" * 256 + ".txt", "scene/" + "/".join(["d" * 100] * 6) + "/x.txt"],
+    ids=["SOH", "ESC", "non-character", "CR", "bidi override", "long file name", "long path"],
+)  # fmt: skip
+def test_entry_names_the_storage_cannot_keep_are_refused_before_extracting(tmp_path: Path, name: str) -> None:
+    """Each file becomes an object key as named: a name S3's DeleteObjects cannot carry made its job undeletable (and
+    stopped the expiry sweep for every tenant), so it is refused at the door, with its own code."""
+    archive = _write_zip(tmp_path / "a.zip", {**NERF, name: b"notes"})
+    error = _error(lambda: extract_dataset(archive, tmp_path / "out", LIMITS))
+    assert (error.status, error.code) == (422, "bad_name"), error.message
+    assert not (tmp_path / "out").exists()
+
+
+def test_printable_names_of_any_script_are_kept(tmp_path: Path) -> None:
+    entries = {**NERF, "scene/notes/façade vue 東 😀.txt": b"notes"}
+    extract_dataset(_write_zip(tmp_path / "a.zip", entries), tmp_path / "out", LIMITS)
+    assert (tmp_path / "out" / "scene" / "notes" / "façade vue 東 😀.txt").read_bytes() == b"notes"

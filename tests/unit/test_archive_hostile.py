@@ -10,6 +10,8 @@ import copy
 import json
 import math
 import struct
+import time
+import tracemalloc
 import zlib
 from collections.abc import Callable
 from datetime import timedelta
@@ -21,6 +23,7 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.fuzz_archive import claiming
 from symgs_core.codec import (
     MAGIC,
     ArchiveContents,
@@ -30,6 +33,7 @@ from symgs_core.codec import (
     encode_archive,
     expand_archive,
 )
+from symgs_core.codec.archive import decode_memory
 from symgs_core.codec.floats import FLOAT32
 from symgs_core.codec.masks import write_varints
 from symgs_core.mirror import Plane
@@ -424,3 +428,45 @@ def test_version_2_headers_that_do_not_inflate_are_refused() -> None:
     unsized = zstandard.ZstdCompressor(write_content_size=False).compress(text)
     framed = MAGIC + struct.pack("<III", 2, len(unsized), zlib.crc32(unsized)) + unsized + body
     assert code_of(framed) == "bad_header"
+
+
+TWO_PLANES = [{"normal": [1.0, 0.0, 0.0], "offset": 0.0}, {"normal": [0.0, 1.0, 0.0], "offset": 0.0}]
+
+
+def _refused_at_once(data: bytes, limits: DecodeLimits | None = None) -> str:
+    """The code ``data`` is refused with, asserting that it took milliseconds and allocated next to nothing."""
+    tracemalloc.start()
+    start = time.perf_counter()
+    try:
+        code = code_of(data, limits)
+        seconds = time.perf_counter() - start
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert seconds < 0.25 and peak < 8 << 20, (seconds, peak)
+    return code
+
+
+def test_a_tiny_archive_claiming_a_million_gaussians_is_refused_at_once() -> None:
+    """7.8 kB of zeros claiming 1M stored Gaussians of SH degree 3, both level bits set: it decoded to 4M Gaussians
+    at 3.3 GiB; within the old fixed limits an 80 kB file could ask for 30 GiB."""
+    data = claiming(1_000_000, 3, TWO_PLANES)
+    assert len(data) < 10_000
+    assert _refused_at_once(data) == "disproportionate"
+
+
+def test_level_bits_that_expand_a_small_archive_far_beyond_its_size_are_refused_before_any_attribute() -> None:
+    planes = [{"normal": [0.0, 0.0, 1.0], "offset": 0.1 * i} for i in range(8)]
+    data = claiming(50_000, 2, planes)  # as many stored as its size allows, each expanding 256 times
+    assert len(data) < 2_000
+    assert _refused_at_once(data) == "disproportionate"
+    assert _refused_at_once(data, DecodeLimits(floor=1 << 25, max_memory_bytes=1 << 30)) == "limit_exceeded"
+
+
+def test_archives_in_proportion_decode_within_their_memory_budget() -> None:
+    data = claiming(5_000, 1, TWO_PLANES)  # 20,000 Gaussians once expanded: within any file's floor
+    contents = decode_archive(data)
+    assert len(expand_archive(contents)) == 20_000
+    need = decode_memory(5_000, 20_000, 1, 2)
+    assert code_of(data, DecodeLimits(max_memory_bytes=need - 1)) == "limit_exceeded"
+    decode_archive(data, limits=DecodeLimits(max_memory_bytes=need))

@@ -109,3 +109,28 @@ def test_submissions_carry_one_idempotency_key_across_retries(tmp_path: Path, ca
         assert main(["submit", str(scene), "--server", url, "--no-wait"]) == 0, capsys.readouterr().err
     keys = [headers.get("idempotency-key") for headers in api.asked("POST /v1/jobs")]
     assert len(keys) == 2 and keys[0] and keys[0] == keys[1]
+
+
+@pytest.mark.parametrize("hostile", ["../../escape.bin", "/abs/escape.bin", "charts/..\\..\\x.png", "a/\x1b[2Jb.png"])
+def test_fetch_refuses_result_names_that_leave_the_folder_and_writes_nothing(
+    tmp_path: Path, capsys, hostile: str  # noqa: ANN001
+) -> None:
+    """A server (or anyone in the middle of plain http) listing ``../../x`` or ``/abs/path`` must not make the client
+    write there: the fetch stops before any download, in one line, exit 2."""
+    out = tmp_path / "deep" / "er" / "out"
+    name = str(tmp_path / "abs" / "escape.bin") if hostile.startswith("/") else hostile
+    script = _finished(A, b"r")
+    script[f"GET /v1/jobs/{A}"] = [job(A, "succeeded", ("result.symgs", name))]
+    for path in ("/v1/escape.bin", f"/v1/jobs/{A}/{name}", f"/v1/jobs/{A}/{name.replace(chr(92), '/')}"):
+        script[f"GET {path}"] = [(200, {}, b"pwned")]
+    api = ScriptedApi(script)
+    with serving(api) as url:
+        assert main(["fetch", A, "-o", str(out), "--server", url]) == 2
+        assert "outside" in _one_error_line(capsys, "fetch")
+        submitted = _scene(tmp_path / "s.ply")
+        script["POST /v1/jobs"] = [job(A, "queued")]
+        assert main(["submit", str(submitted), "-o", str(out), "--server", url]) == 2
+        assert "outside" in capsys.readouterr().err
+    written = [p for p in tmp_path.rglob("*") if p.is_file() and p.name != "s.ply"]
+    assert written == [], written
+    assert not api.asked(f"GET /v1/jobs/{A}/result")

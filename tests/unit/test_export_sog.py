@@ -8,12 +8,14 @@ import json
 import math
 import zipfile
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
+from symgs_core import files
 from symgs_core.export import SogError, export_scene, import_scene, read_sog, sog_files, sog_order, write_sog
 from symgs_core.export.formats import by_path
 from symgs_core.export.sog import CODEBOOK, fit_codebook, read_sog_files, save_sog_folder, texture_size
@@ -193,15 +195,16 @@ def test_a_folder_write_that_fails_leaves_the_previous_export_whole(tmp_path, mo
     meta = tmp_path / "web" / "meta.json"
     save_sog_folder(on_grids(n=300, degree=2, seed=1), meta)
     before = {p.name: p.read_bytes() for p in meta.parent.iterdir()}
-    write_bytes, calls = Path.write_bytes, []
+    create, calls = files.create_exclusive, []
 
-    def disk_fills(self: Path, data: bytes) -> int:
-        calls.append(self.name)
-        if len(calls) == 3:
-            raise OSError(28, "No space left on device", str(self))
-        return write_bytes(self, data)
+    def disk_fills(path: Path) -> BinaryIO:
+        calls.append(path.name)
+        if len(calls) == 3:  # the third file, created before the disk filled, takes no bytes
+            create(path).close()
+            raise OSError(28, "No space left on device", str(path))
+        return create(path)
 
-    monkeypatch.setattr(Path, "write_bytes", disk_fills)
+    monkeypatch.setattr(files, "create_exclusive", disk_fills)
     with pytest.raises(OSError, match="No space left"):
         save_sog_folder(on_grids(n=700, degree=1, seed=2), meta)
     monkeypatch.undo()

@@ -13,7 +13,7 @@ def test_mutants_are_refused_or_finite() -> None:
     for family in ("raw", "crc"):
         assert tally.counts[(family, "refused")] > 100, tally.counts
     assert tally.counts[("crc", "accepted")] > 0  # harmless changes (meta, codec name) still decode
-    assert {"bad_checksum", "bad_header", "corrupt_section", "truncated"} <= set(tally.codes)
+    assert {"bad_checksum", "bad_header", "corrupt_section", "truncated", "disproportionate"} <= set(tally.codes)
 
 
 def test_mutants_replay_and_seeds_decode() -> None:

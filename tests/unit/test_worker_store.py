@@ -271,6 +271,74 @@ def test_files_of_a_submission_refused_while_the_storage_failed_are_deleted_once
     assert not storage.job_dir("o1", _job(7).id).exists()
 
 
+class _StuckJob(DirectoryStorage):
+    """A folder storage that answers, but will not delete the files of the jobs in ``stuck`` (on S3: keys that the
+    XML of DeleteObjects could not carry), or answers nothing at all while ``away``."""
+
+    def __init__(self, root: Path, stuck: set[str]) -> None:
+        super().__init__(root)
+        self.stuck, self.away = stuck, False
+
+    def delete(self, *, owner: str, job_id: str) -> None:
+        if self.away or job_id in self.stuck:
+            raise StorageError("DeleteObjects: 500 Internal Server Error")
+        super().delete(owner=owner, job_id=job_id)
+
+    def reachable(self) -> bool:
+        return not self.away
+
+
+def test_one_job_that_will_not_delete_never_stops_expiry(
+    store: JobStore, redis_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The oldest finished job failing its deletion on every try stopped the sweep there: no job of any tenant
+    expired again, nor any staging upload. It is set aside and tried again later; the others expire."""
+    import worker.maintenance
+
+    settings = _settings(redis_url, tmp_path, job_ttl=1)
+    bad, others = _job(1, owner="o1"), [_job(2, owner="o2"), _job(3, owner="o3")]
+    storage = _StuckJob(tmp_path, {bad.id})
+    for record in (bad, *others):
+        store.create(record)
+        store.transition(record.id, "failed")
+        storage.write_artifact(owner=record.owner, job_id=record.id, name="report.json", data=b"{}")
+        time.sleep(0.01)  # the bad one is the oldest
+    stale = tmp_path / "staging" / "dead-upload"
+    stale.mkdir(parents=True)
+    monkeypatch.setattr(worker.maintenance, "STAGING_MAX_AGE_S", 0)
+    monkeypatch.setattr(worker.maintenance, "QUARANTINE_S", 1)
+    time.sleep(1.1)
+
+    report = SweepReport()
+    expire(store, storage, settings, report)
+    assert report.expired == [r.id for r in others] and report.quarantined == [bad.id]
+    assert all(store.get(r.id) is None and not storage.job_dir(r.owner, r.id).exists() for r in others)
+    assert store.get(bad.id) is not None and not stale.exists()
+
+    again = SweepReport()
+    expire(store, storage, settings, again)
+    assert again == SweepReport()  # set aside: not tried at every sweep
+    storage.stuck.clear()
+    time.sleep(1.1)
+    expire(store, storage, settings, again)
+    assert again.expired == [bad.id] and store.get(bad.id) is None
+    assert not storage.job_dir(bad.owner, bad.id).exists()
+
+
+def test_an_outage_sets_no_job_aside(store: JobStore, redis_url: str, tmp_path: Path) -> None:
+    """When the storage answers nothing, every job would fail alike: the sweep stops and the next one tries again."""
+    settings = _settings(redis_url, tmp_path, job_ttl=1)
+    storage = _StuckJob(tmp_path, set())
+    storage.away = True
+    store.create(_job(4))
+    store.transition(_job(4).id, "failed")
+    time.sleep(1.1)
+    report = SweepReport()
+    with pytest.raises(StorageError):
+        expire(store, storage, settings, report)
+    assert report == SweepReport() and store.finished_before(time.time()) == [_job(4).id]
+
+
 class _HangingSweep(DirectoryStorage):
     """A folder storage whose sweep hangs until released (an S3 endpoint that stopped answering)."""
 
