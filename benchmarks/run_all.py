@@ -69,6 +69,7 @@ class Bench:
     scenes       data files (relative to the data folder) for ``{scenes}``; ``quick_scenes`` in the quick subset
     notes        take the text lines that follow each table into its block
     copies       (file under ``{out}``, path in the repository) copied after a full run: charts, bench.json
+    cuda         runs only where torch sees a CUDA device (``make gpu-check`` runs the same command)
     estimate     how long a full run takes, until one has been timed (``TIMES`` then holds the measured time)
     """
 
@@ -79,6 +80,7 @@ class Bench:
     scenes: tuple[str, ...] = ()
     quick_scenes: tuple[str, ...] = ()
     data: bool = False  # needs the data folder even without {scenes}
+    cuda: bool = False  # needs an NVIDIA GPU (and gsplat): skipped elsewhere, its blocks left as they were
     notes: bool = False
     env: dict[str, str] = field(default_factory=dict)
     copies: tuple[tuple[str, str], ...] = ()
@@ -188,6 +190,10 @@ BENCHES: tuple[Bench, ...] = (
     Bench("detect-real", ("benchmarks/bench_detect.py", "--sizes", "", "--real", "{data}"),
           ("benchmarks/bench_detect.py", "--sizes", "", "--real", "{data}/kacytran_try_iter7000", "--max-mirrors", "1"),
           ("detect-real",), data=True),
+    Bench("gpu", ("benchmarks/gpu_check.py", "--real", "{scenes}", "--base", f"{{data}}/{PLAYBOT_125K}",
+                  "--out", "{out}"),
+          None, ("gpu-steps", "gpu-timing", "gpu-real"), scenes=REAL, notes=True, cuda=True,
+          estimate="about 8 minutes on one H100 or H200"),
 )  # fmt: skip
 
 
@@ -214,6 +220,13 @@ BLOCK = re.compile(r"<!-- bench:(?P<name>[\w.-]+) -->\n.*?<!-- /bench:(?P=name) 
 
 def block_names(text: str) -> list[str]:
     return [m.group("name") for m in BLOCK.finditer(text)]
+
+
+def _cuda() -> bool:
+    """Whether torch sees a CUDA device, asked in a child process (this one never imports torch)."""
+    done = subprocess.run([sys.executable, "-c", "import torch; print(torch.cuda.is_available())"],
+                          capture_output=True, text=True)  # fmt: skip
+    return done.stdout.strip() == "True"
 
 
 def replace_block(text: str, name: str, body: str) -> str:
@@ -344,6 +357,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         if (bench.data or bench.scenes) and not DATA.is_dir():
             print(f"{bench.name}: skipped, no data folder at {DATA}", flush=True)
+            continue
+        if bench.cuda and not _cuda():
+            print(f"{bench.name}: skipped, no CUDA device on this machine", flush=True)
             continue
         print(f"{bench.name}: {_shown(argv_, bench.env)}", flush=True)
         try:
