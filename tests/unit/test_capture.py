@@ -25,7 +25,7 @@ from symgs_core.bench.capture import (
 )
 from symgs_core.bench.photos import photographed
 from symgs_core.cameras import Camera
-from symgs_core.datasets import DatasetError
+from symgs_core.datasets import DatasetError, dataset_frames
 from symgs_core.progress import ProgressEvent
 from symgs_core.sh import C0
 from symgs_core.views import dataset_eval_views, evaluate
@@ -180,8 +180,7 @@ def test_the_cuda_schedule_trains_toward_the_photographs(tmp_path: Path, strateg
     background = torch.zeros(3, device="cuda")
     tests = dataset_eval_views(tmp_path, truth.to("cuda"), eval=4, resolution=64, background=background)
     settings = TrainSettings.for_device("cuda", iterations=400, random_points=2000, strategy=strategy)
-    cameras = [v.camera for v in dataset_eval_views(tmp_path, truth, eval=16, resolution=64,
-                                                    background=torch.zeros(3))]  # fmt: skip
+    cameras = [frame.camera for frame in dataset_frames(tmp_path, "train")]
     start = initial_scene(*start_points(cameras, 2000, seed=0), sh_degree=3).to("cuda")
     before = evaluate(start, tests, background, with_ssim=False).psnr
     events: list[ProgressEvent] = []
