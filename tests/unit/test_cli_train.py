@@ -58,3 +58,14 @@ def test_bad_input_exits_2_with_one_line(capture: Path, tmp_path: Path, capsys: 
         err = capsys.readouterr().err
         assert err.startswith("symgs train: error: ") and error in err and err.count("\n") == 1, err
     assert not (tmp_path / "s.ply").exists()
+
+
+def test_cuda_asked_for_where_it_cannot_run_is_refused(
+    capture: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["train", str(capture), "-o", str(tmp_path / "s.ply"), "--device", "cuda"]) == 2
+    assert capsys.readouterr().err == ("symgs train: error: --device cuda needs a CUDA device; --device cpu trains on "
+                                       "the CPU\n")  # fmt: skip
