@@ -154,12 +154,10 @@ def read_frame(
     lens = frame.lens.scaled(1.0 / reduce, 1.0 / reduce, colour.shape[1], colour.shape[0])
     middle = pinhole.resized(round(pinhole.width / reduce), round(pinhole.height / reduce))
     key = (lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)
-    if maps is None or key not in maps:
-        found = undistortion_maps(lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)
-        if maps is not None:
-            maps[key] = found
-    else:
-        found = maps[key]
+    maps = {} if maps is None else maps
+    if key not in maps:
+        maps[key] = undistortion_maps(lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)
+    found = maps[key]
     stacked = colour if alpha is None else torch.cat([colour, alpha], dim=-1)
     out = undistort_image(stacked, found)
     colour, alpha = out[..., :3], None if alpha is None else out[..., 3:]
