@@ -70,7 +70,7 @@ class TrainSettings:
     resolution    the photographs' longest side in training, pixels (None: their own size; never above it).
     sh_degree     SH degree of the scene (cuda: raised one band every 1000 steps, as 3DGS does).
     strategy      cuda: gsplat's densification, "default" (3DGS's) or "mcmc" (3DGS-MCMC).
-    random_background  cuda: a random colour behind every render (and behind photographs with alpha), else black.
+    random_background  cuda: photographs with alpha and their renders laid on a random colour a step, else black.
     random_points start points where the capture has no structure-from-motion points.
     """
 

@@ -6,9 +6,11 @@ learning rates, the positions' scaled by the scene extent and decayed exponentia
 SH degree raised by one every 1,000 steps up to the scene's; gsplat's ``DefaultStrategy`` (3DGS's clone, split and
 prune) or ``MCMCStrategy`` (3DGS-MCMC's relocation and growth, with its opacity and scale regularisers and its
 brighter, smaller start), every step count of the schedule scaled with the run's length as gsplat's trainer scales
-them (``steps_scaler``). Behind every render, and behind the photographs where they have alpha, a random colour a
-step: the scene cannot leave transparent what the photographs show opaque (gsplat's ``random_bkgd``); without it
-(``random_background`` False) renders are drawn on black, as the CPU schedule draws them.
+them (``steps_scaler``). Photographs with alpha are laid, with the render, on a random colour a step (nerfstudio's
+random background; ``random_background`` False: on black): the scene learns no backdrop, and cannot leave
+transparent what they show opaque. Opaque photographs carry their own surroundings, which the scene must learn: their
+renders are drawn on black, as the CPU schedule draws them (a random colour behind them would have to be painted over
+wherever the photographs show a flat backdrop).
 
 gsplat (the optional ``gpu`` extra) is imported inside ``train_gsplat``; its kernels compile on first use.
 """
@@ -103,7 +105,8 @@ def train_gsplat(
             shuffle.shuffle(order)
         index = order.pop()
         camera, (colour, alpha) = cameras[index], targets[index]
-        background = torch.rand(3, generator=colours, device=device) if settings.random_background else black
+        shows_through = settings.random_background and alpha is not None
+        background = torch.rand(3, generator=colours, device=device) if shows_through else black
         rendered, _, info = gsplat.rasterization(
             means=params["means"],
             quats=params["quats"],
@@ -136,7 +139,8 @@ def train_gsplat(
             strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
         done = step + 1
         if progress is not None and (done % REPORT_EVERY == 0 or done == settings.iterations):
-            message = f"step {done}/{settings.iterations}, {len(params['means']):,} Gaussians, loss {float(loss):.4f}"
+            count, value = len(params["means"]), float(loss.detach())
+            message = f"step {done}/{settings.iterations}, {count:,} Gaussians, loss {value:.4f}"
             progress(ProgressEvent("train", None, done / settings.iterations, message))
     with torch.no_grad():
         return GaussianScene(
