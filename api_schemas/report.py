@@ -25,6 +25,13 @@ class CameraSet(BaseModel):
     distances: tuple[float, float] | None = Field(description="nearest and farthest camera in scene radii")
 
 
+class PhotoScale(BaseModel):
+    width: int = Field(description="the photographs' own width, pixels (a distorted camera's undistorted frame)")
+    height: int = Field(description="their own height, pixels")
+    scale: float = Field(description="the share of that size every camera set decoded them at; 1: their own size")
+    reason: str = Field(description="why that scale")
+
+
 class Cameras(BaseModel):
     training: CameraSet
     fitting: CameraSet
@@ -33,6 +40,9 @@ class Cameras(BaseModel):
     background: tuple[float, float, float] = Field(
         description="RGB in 0..1 every render of the job drew the scene on: black against renders of the input and "
         "photographs with alpha, else the flat backdrop the photographs show around the upload"
+    )
+    photographs: PhotoScale | None = Field(
+        None, description="how the job read its photographs; null without them (targets rendered from the input)"
     )
 
 

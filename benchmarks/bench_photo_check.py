@@ -34,7 +34,6 @@ KINDS = ("global", "nested", "local", "asymmetric")
 PHOTO_SETS = ("nerf_synthetic_lego_400px", "snowmiku_plush_capture_mit")
 REAL_UPLOADS = ("donut_mipsplatting/donut_graphdeco_sh0.ply", "fox_cc0_mujoco_warp/fox_graphdeco_sanitized.ply",
                 "playbot_cc_by_sa3d/playbot_lod3_31k_sh2.ply")  # fmt: skip
-TRAINED = "trained-5x600.ply"  # the name bench_pipeline.py --captures caches a trained scene under
 
 
 def row(upload: str, photographs: str, scene, folder: Path, *, fit: int, resolution: int) -> str:  # noqa: ANN001
@@ -78,8 +77,11 @@ def real(data: Path, captures: Path | None, fit: int, resolution: int) -> list[s
     rows = []
     uploads = [(path, data / path) for path in REAL_UPLOADS if (data / path).exists()]
     if captures is not None:
-        uploads += [(f"{name}/{TRAINED} (trained from it)", captures / name / TRAINED) for name in PHOTO_SETS
-                    if (captures / name / TRAINED).exists()]  # fmt: skip
+        from symgs_core.bench.capture import TrainSettings, cached_path
+
+        trained = [(name, cached_path(data / name, captures / name, TrainSettings())) for name in PHOTO_SETS
+                   if (data / name).exists()]  # fmt: skip
+        uploads += [(f"{name}/{ply.name} (trained from it)", ply) for name, ply in trained if ply.exists()]
     for label, path in uploads:
         scene = load_scene(path)
         for photos in PHOTO_SETS:

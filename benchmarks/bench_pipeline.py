@@ -63,7 +63,7 @@ def _row(name: str, on, off, wall_on: float, wall_off: float) -> str:  # noqa: A
 
 
 def main() -> None:
-    from symgs_core.bench.capture import ITERATIONS, ROUNDS, cached_capture
+    from symgs_core.bench.capture import ITERATIONS, ROUNDS, TrainSettings, cached_capture
     from symgs_core.config import PRESET_NAMES, CompressConfig
     from symgs_core.pipeline import compress
     from symgs_core.synthetic import synthetic_scene
@@ -124,10 +124,10 @@ def main() -> None:
     if args.images and len(args.images) != len(args.scenes):
         parser.error(f"--images names {len(args.images)} folders for {len(args.scenes)} scenes")
     jobs += [(p.name, p, images) for p, images in zip(args.scenes, args.images or [None] * len(args.scenes))]
+    training = TrainSettings(iterations=args.train_rounds * args.train_iterations, rounds=args.train_rounds)
     for folder in args.captures:
-        ply = args.work / folder.name / f"trained-{args.train_rounds}x{args.train_iterations}.ply"
-        cached_capture(folder, ply, rounds=args.train_rounds, iterations=args.train_iterations,
-                       say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
+        ply = cached_capture(folder, args.work / folder.name, training,
+                             say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
         jobs.append((f"{folder.name} (trained: {ply.name})", ply, folder))
     print(f"config: {config}\n")
     print("| scene | levels | input | stored | no mirrors B | mirrors B | gain | PSNR dB without (full / object) | "

@@ -201,7 +201,7 @@ def against_truth(scene, photographs: Path) -> dict | None:  # noqa: ANN001 - Ga
 
 
 def truth_table(args: argparse.Namespace) -> None:
-    from symgs_core.bench.capture import ITERATIONS, RESOLUTION, ROUNDS, cached_capture
+    from symgs_core.bench.capture import RESOLUTION, cached_capture
     from symgs_core.bench.photos import photographed
     from symgs_core.ply import load_scene
 
@@ -210,7 +210,7 @@ def truth_table(args: argparse.Namespace) -> None:
              lambda: photographed(kind, args.work / f"truth-{kind}", n=TRUTH_N, photos=2, tests=TEST_PHOTOS,
                                   resolution=RESOLUTION), args.work / f"truth-{kind}")]  # fmt: skip
     for folder in args.captures:
-        ply = cached_capture(folder, args.work / folder.name / f"trained-{ROUNDS}x{ITERATIONS}.ply",
+        ply = cached_capture(folder, args.work / folder.name,
                              say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
         jobs.append((f"{folder.name} (trained: {ply.name})", lambda p=ply: load_scene(p), folder))
     print("| scene | Gaussians | dropped half, paired | test photographs: input / paired replaced by reflections / "

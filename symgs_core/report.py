@@ -41,6 +41,17 @@ class CameraSet:
 
 
 @dataclass(frozen=True)
+class PhotoScale:
+    """How a job read its photographs: their own size (a distorted camera's undistorted pinhole frame) and the share
+    of it every camera set decoded them at, with why."""
+
+    width: int  # pixels
+    height: int
+    scale: float  # 1: their own size; below it, the judges' resolution asked for less
+    reason: str
+
+
+@dataclass(frozen=True)
 class Cameras:
     training: CameraSet
     fitting: CameraSet
@@ -49,6 +60,7 @@ class Cameras:
     # RGB in [0, 1] every render of the job drew the scene on: black against renders of the input and against
     # photographs with alpha; the flat backdrop photographs without alpha show around the upload, where they show one
     background: tuple[float, float, float]
+    photographs: PhotoScale | None = None  # None: no photographs, the targets are renders of the input
 
 
 @dataclass(frozen=True)

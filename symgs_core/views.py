@@ -29,7 +29,7 @@ from torch import Tensor
 from .cameras import Camera, fibonacci_directions, near_for, scene_bounds
 from .devices import HOST
 from .metrics import mse_to_psnr, ssim
-from .report import CameraSet, Fidelity
+from .report import CameraSet, Fidelity, PhotoScale
 from .scene import GaussianScene
 
 if TYPE_CHECKING:
@@ -100,6 +100,7 @@ class ViewSet:
     sets: tuple[CameraSet, CameraSet, CameraSet]
     # The three sets' photographs before a background (None: targets rendered from the scene), for ``on``.
     photographs: tuple[list[PhotoTarget], list[PhotoTarget], list[PhotoTarget]] | None = None
+    read: PhotoScale | None = None  # how the photographs were read (None: no photographs)
 
     @property
     def source(self) -> str:
@@ -110,16 +111,17 @@ class ViewSet:
         object's pixels (where the scene renders opaque, whatever it is drawn on) are not rendered again."""
         if self.photographs is None:
             raise ValueError("only photographs are laid on another background; renders are drawn on theirs")
-        return _laid(self.photographs, background, self.sets)
+        return _laid(self.photographs, background, self.sets, self.read)
 
 
 def _laid(
     photographs: tuple[list[PhotoTarget], list[PhotoTarget], list[PhotoTarget]],
     background: Tensor,
     sets: tuple[CameraSet, CameraSet, CameraSet],
+    read: PhotoScale | None,
 ) -> ViewSet:
     train, fit, eval = ([target.on(background) for target in targets] for targets in photographs)
-    return ViewSet(train, fit, eval, background, sets, photographs)
+    return ViewSet(train, fit, eval, background, sets, photographs, read)
 
 
 def _turn(seed: int) -> Tensor:
@@ -183,13 +185,15 @@ def dataset_views(
     background: Tensor,
 ) -> ViewSet:
     """Posed photographs of a NeRF-Synthetic or COLMAP folder, decoded at a scale whose longest side is
-    ``resolution``: the test split (at most ``eval`` images, evenly spaced) evaluates, ``fit`` training images,
-    evenly spaced, fit, and the other training images train. The object's pixels are where ``scene`` (the
-    uncompressed upload) renders opaque."""
+    ``resolution`` (``photo_reading``): the test split (at most ``eval`` images, evenly spaced) evaluates, ``fit``
+    training images, evenly spaced, fit, and the other training images train. The object's pixels are where
+    ``scene`` (the uncompressed upload) renders opaque. Opaque photographs are their own background: each is judged
+    with the surroundings it shows."""
 
     from .datasets import DatasetError, load_photographs
 
-    scale, width = photo_scale(folder, resolution)
+    read = photo_reading(folder, resolution)
+    scale, width = read.scale, _side(read)
     photos = load_photographs(folder, split="train", scale=scale)
     if len(photos) < 2:
         raise DatasetError(
@@ -209,7 +213,7 @@ def dataset_views(
     eval_targets = _eval_targets(folder, scene, eval=eval, scale=scale)
     sets = (described("training", len(train_targets)), described("fitting", len(fit_targets)),
             described("evaluation", len(eval_targets)))  # fmt: skip
-    return _laid((train_targets, fit_targets, eval_targets), background, sets)
+    return _laid((train_targets, fit_targets, eval_targets), background, sets, read)
 
 
 def flat_colour_psnr(views: Sequence[View]) -> float:
@@ -270,11 +274,33 @@ def check_photographs(fitting: Fidelity, views: Sequence[View]) -> None:
 
 def photo_scale(folder: str | Path, resolution: int) -> tuple[float, int]:
     """The scale that brings the training photographs' longest side to ``resolution`` (never up), and that side."""
+    read = photo_reading(folder, resolution)
+    return read.scale, _side(read)
+
+
+def _side(read: PhotoScale) -> int:
+    return round(max(read.width, read.height) * read.scale)
+
+
+def photo_reading(folder: str | Path, resolution: int) -> PhotoScale:
+    """How photographs are read for judges at ``resolution``: at the scale that brings the training photographs'
+    longest side to it, never above their own size (a render larger than its photograph only invents pixels), with
+    the reason a report gives for it."""
     from .datasets import dataset_frames
 
-    first = dataset_frames(folder, "train")[0].camera
-    scale = min(1.0, resolution / max(first.width, first.height))
-    return scale, round(max(first.width, first.height) * scale)
+    first = dataset_frames(folder, "train")[0]
+    width, height = first.camera.width, first.camera.height
+    scale = min(1.0, resolution / max(width, height))
+    lens = first.lens
+    own = f"{width}x{height}" + ("" if lens is None else f" (undistorted from {lens.width}x{lens.height})")
+    if scale < 1.0:
+        reason = (f"decoded at {scale:.3g} of their {own}: the judges render at the job's eval_resolution, "
+                  f"{resolution} px on the longest side, and the fine-tune trains there too; a larger "
+                  f"eval_resolution, up to {max(width, height)}, judges closer to their own size at more time a "
+                  "render")  # fmt: skip
+    else:
+        reason = f"read at their own size, {own}: the job's eval_resolution ({resolution} px) asks for no less"
+    return PhotoScale(width, height, scale, reason)
 
 
 @torch.no_grad()

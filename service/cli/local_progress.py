@@ -1,5 +1,5 @@
-"""Progress of a job run in this process (``symgs compress``): a bar with the time left on a terminal, plain lines
-otherwise (logs, CI, ``2> file``), where a bar would print nothing until the end.
+"""Progress of a job run in this process (``symgs compress``, ``symgs train``): a bar with the time left on a
+terminal, plain lines otherwise (logs, CI, ``2> file``), where a bar would print nothing until the end.
 
 The pipeline reports at its own pace, sometimes minutes apart inside one step; a ticker thread keeps the time left
 (and, as plain lines, the sign of life) moving in between."""
@@ -24,8 +24,10 @@ LINE_EVERY_S = 10.0  # plain lines: one per stage or level change, else one this
 class LocalProgress:
     """The pipeline's ``progress`` callback, as a context manager that owns the display."""
 
-    def __init__(self, console: Console, *, quiet: bool = False, line_every_s: float = LINE_EVERY_S) -> None:
-        self.console, self.quiet, self.line_every_s = console, quiet, line_every_s
+    def __init__(
+        self, console: Console, *, quiet: bool = False, line_every_s: float = LINE_EVERY_S, command: str = "compress"
+    ) -> None:
+        self.console, self.quiet, self.line_every_s, self.command = console, quiet, line_every_s, command
         self.eta = Eta()
         self.bar: Progress | None = None
         self._lock = threading.Lock()
@@ -49,7 +51,7 @@ class LocalProgress:
                 console=self.console,
             )
             self.bar.__enter__()
-            self.task = self.bar.add_task("compress", total=1.0, left=format_seconds(None))
+            self.task = self.bar.add_task(self.command, total=1.0, left=format_seconds(None))
         self._ticker = threading.Thread(target=self._tick, name="progress-ticker", daemon=True)
         self._ticker.start()
         return self
@@ -92,7 +94,7 @@ class LocalProgress:
         self._line_at = (event.stage, event.level, now)
         label = f"{event.stage} L{event.level}" if event.level is not None else event.stage
         self.console.file.write(
-            f"compress: {label} {event.fraction * 100:3.0f}%  elapsed {format_seconds(now - self._start)}  "
+            f"{self.command}: {label} {event.fraction * 100:3.0f}%  elapsed {format_seconds(now - self._start)}  "
             f"left {format_seconds(left)}  {event.message}\n"
         )
         self.console.file.flush()

@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "service.cli.scene",  # info, render
     "service.cli.detect",  # detect
     "service.cli.codec",  # compress, decompress, evaluate
+    "service.cli.train",  # train
     "service.cli.bench",  # bench
     "service.cli.service",  # serve, worker, submit, status, fetch, demo
 ]

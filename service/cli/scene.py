@@ -197,7 +197,7 @@ def run_render(args: argparse.Namespace) -> int:
     import torch
     from PIL import Image
 
-    from symgs_core.datasets import DatasetError, read_image, resize_image
+    from symgs_core.datasets import DatasetError, composite, read_frame
     from symgs_core.metrics import psnr, ssim
     from symgs_core.render import BackendUnavailableError, render
 
@@ -229,10 +229,9 @@ def run_render(args: argparse.Namespace) -> int:
     print(f"wrote {args.output} ({camera.width}x{camera.height}, {label}, {backend} backend, {seconds:.2f} s)")
     if frame is not None:
         try:
-            reference = read_image(frame.path, background)
+            reference = composite(*read_frame(frame, camera.width, camera.height), background)
         except DatasetError as exc:
             raise CliError(f"cannot read the dataset image: {error_text(exc)}") from None
-        reference = resize_image(reference, camera.width, camera.height)
         if min(camera.width, camera.height) >= 11:
             fidelity = f"PSNR {float(psnr(image, reference)):.2f} dB, SSIM {float(ssim(image, reference)):.4f}"
             print(f"against {frame.name}: {fidelity}")

@@ -1,5 +1,6 @@
 """Posed image sets: NeRF-Synthetic (``transforms_*.json``, ``nerf.py``) and COLMAP (``sparse/0``, text or binary,
-``colmap.py``), read into frames, photographs and views (``posed.py``) from their image files (``images.py``).
+``colmap.py``), read into frames, photographs and views (``posed.py``) from their image files (``images.py``),
+distorted photographs undistorted to pinhole cameras on load (``lens.py``).
 
 Every camera comes out in our convention (``cameras.COORDINATE_CONVENTION``: OpenCV axes, world-to-camera). Sets
 without a test split of their own are split by the LLFF hold-out: every 8th image by name is "test".
@@ -13,7 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from .colmap import COLMAP_MODELS, colmap_frames, colmap_model_dir, load_colmap, read_colmap_model
-from .images import load_frames, load_views, pixel_limit, read_image, read_premultiplied, resize_image
+from .images import load_frames, load_views, pixel_limit, read_frame, read_image, read_premultiplied, resize_image
+from .lens import Lens
 from .nerf import has_transforms, load_nerf_synthetic, nerf_synthetic_frames, write_nerf_synthetic
 from .posed import (
     LLFF_HOLD,
@@ -28,10 +30,10 @@ from .posed import (
 )
 
 __all__ = [
-    "COLMAP_MODELS", "LLFF_HOLD", "DatasetError", "Layout", "Photograph", "PosedFrame", "Split", "View",
+    "COLMAP_MODELS", "LLFF_HOLD", "DatasetError", "Layout", "Lens", "Photograph", "PosedFrame", "Split", "View",
     "colmap_frames", "colmap_model_dir", "composite", "dataset_frames", "dataset_layout", "load_colmap",
     "load_dataset", "load_nerf_synthetic", "load_photographs", "nerf_synthetic_frames", "pixel_limit",
-    "read_colmap_model", "read_image", "read_premultiplied", "resize_image", "write_nerf_synthetic",
+    "read_colmap_model", "read_frame", "read_image", "read_premultiplied", "resize_image", "write_nerf_synthetic",
 ]  # fmt: skip
 
 

@@ -2,10 +2,11 @@
 is not needed).
 
 Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
-to the size of the image actually read. Pinhole models (PINHOLE, SIMPLE_PINHOLE) are exact. SIMPLE_RADIAL, RADIAL
-and OPENCV are accepted when their distortion coefficients are zero; otherwise loading fails with
-``distorted_camera`` (undistort with COLMAP's ``image_undistorter``) unless ``ignore_distortion=True`` treats them
-as pinhole cameras. Fisheye and other models fail with ``unknown_camera_model``. Hold-out split (LLFF
+to the size of the image actually read. Pinhole models (PINHOLE, SIMPLE_PINHOLE) are read as they are; the
+distorted ones (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV) are undistorted on load to the pinhole camera COLMAP's
+``image_undistorter`` gives them (``lens``). Fisheye models (OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
+RADIAL_FISHEYE, THIN_PRISM_FISHEYE) and FOV fail with ``unsupported_camera_model``, unknown ones with
+``unknown_camera_model``. Hold-out split (LLFF
 convention): images sorted by name, every 8th one (index 0, 8, 16, ...) is "test", the rest "train". Every
 camera needs a positive size and finite intrinsics (a positive focal length), every image a finite rigid pose. An
 image name that leads out of the dataset folder is refused (``malformed``).
@@ -20,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import Camera
 from .images import image_size, load_views
+from .lens import Lens, posed_frame
 from .posed import (
     DatasetError,
     PosedFrame,
@@ -49,14 +50,18 @@ COLMAP_MODELS = {
     10: ("THIN_PRISM_FISHEYE", 12),
 }
 _MODEL_IDS = {name: i for i, (name, _) in COLMAP_MODELS.items()}
-# Where fx, fy, cx, cy sit in each supported model's parameters, and where its distortion coefficients start.
+# Where fx, fy, cx, cy sit in each supported model's parameters, and the names of its distortion coefficients after
+# them (OpenCV's order; FULL_OPENCV's k4 k5 k6 are the denominator of OpenCV's rational model).
 _INTRINSICS = {
-    "SIMPLE_PINHOLE": ((0, 0, 1, 2), 3),
-    "PINHOLE": ((0, 1, 2, 3), 4),
-    "SIMPLE_RADIAL": ((0, 0, 1, 2), 3),
-    "RADIAL": ((0, 0, 1, 2), 3),
-    "OPENCV": ((0, 1, 2, 3), 4),
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2), ()),
+    "PINHOLE": ((0, 1, 2, 3), ()),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2), ("k1",)),
+    "RADIAL": ((0, 0, 1, 2), ("k1", "k2")),
+    "OPENCV": ((0, 1, 2, 3), ("k1", "k2", "p1", "p2")),
+    "FULL_OPENCV": ((0, 1, 2, 3), ("k1", "k2", "p1", "p2", "k3", "d1", "d2", "d3")),
 }
+# Models no pinhole holds whole: fisheye lenses see past 180 degrees, and COLMAP's FOV model is a fisheye's too.
+_UNSUPPORTED = ("OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV")
 
 
 @dataclass(frozen=True)
@@ -273,23 +278,23 @@ def _quat_to_rotmat(q: tuple[float, float, float, float]) -> np.ndarray:
     )
 
 
-def _pinhole(camera: ColmapCamera, ignore_distortion: bool, camera_id: int) -> tuple[float, float, float, float]:
+def _lens(camera: ColmapCamera, camera_id: int) -> Lens:
+    """The lens of ``camera``, for an image of the camera's own size."""
+    if camera.model in _UNSUPPORTED:
+        raise DatasetError(
+            "unsupported_camera_model",
+            f"camera {camera_id}: model {camera.model} is a fisheye one, which no pinhole camera holds whole; "
+            f"undistort the photographs first (COLMAP's image_undistorter writes them with a PINHOLE model)",
+        )
     if camera.model not in _INTRINSICS:
-        raise DatasetError(
-            "unknown_camera_model",
-            f"camera {camera_id}: model {camera.model} is not supported (PINHOLE, SIMPLE_PINHOLE; SIMPLE_RADIAL, "
-            f"RADIAL and OPENCV without distortion)",
-        )
-    index, distortion_start = _INTRINSICS[camera.model]
-    distortion = camera.params[distortion_start:]
-    if any(d != 0.0 for d in distortion) and not ignore_distortion:
-        raise DatasetError(
-            "distorted_camera",
-            f"camera {camera_id}: {camera.model} has distortion {list(distortion)}; undistort the photographs first "
-            f"(COLMAP's image_undistorter writes them with a PINHOLE model)",
-        )
+        raise DatasetError("unknown_camera_model", f"camera {camera_id}: model {camera.model} is not supported")
+    index, names = _INTRINSICS[camera.model]
     fx, fy, cx, cy = (camera.params[i] for i in index)
-    return fx, fy, cx, cy
+    k = dict(zip(names, camera.params[max(index) + 1 :], strict=True))
+    return Lens(fx, fy, cx, cy, camera.width, camera.height,
+                radial=(k.get("k1", 0.0), k.get("k2", 0.0), k.get("k3", 0.0), 0.0),
+                tangential=(k.get("p1", 0.0), k.get("p2", 0.0)),
+                rational=(k.get("d1", 0.0), k.get("d2", 0.0), k.get("d3", 0.0)))  # fmt: skip
 
 
 def _colmap_image_dir(root: Path, images: str | None) -> Path:
@@ -308,9 +313,7 @@ def _colmap_image_dir(root: Path, images: str | None) -> Path:
     return downsampled[0][1]
 
 
-def colmap_frames(
-    root: str | Path, split: Split = "all", *, images: str | None = None, ignore_distortion: bool = False
-) -> list[PosedFrame]:
+def colmap_frames(root: str | Path, split: Split = "all", *, images: str | None = None) -> list[PosedFrame]:
     """Cameras and image paths of a COLMAP dataset, sorted by image name; split by the LLFF hold-out."""
     root = Path(root)
     if split not in ("train", "test", "all"):
@@ -324,7 +327,7 @@ def colmap_frames(
         cam = cameras.get(image.camera_id)
         if cam is None:
             raise DatasetError("camera_missing", f"image {image.name} refers to missing camera {image.camera_id}")
-        fx, fy, cx, cy = _pinhole(cam, ignore_distortion, image.camera_id)
+        lens = _lens(cam, image.camera_id)
         path = folder / image.name
         # Checked before existence, so that a name out of the folder cannot even learn what exists there.
         if not inside(root, path):
@@ -339,19 +342,9 @@ def colmap_frames(
                 f"image {image.name} is {width}x{height} but camera {image.camera_id} is {cam.width}x{cam.height}: "
                 f"the aspect ratios differ",
             )
-        rotation = _quat_to_rotmat(image.qvec)
-        camera = Camera(
-            torch.from_numpy(rotation).float(),
-            torch.tensor(image.tvec, dtype=torch.float32),
-            fx * sx,
-            fy * sy,
-            cx * sx,
-            cy * sy,
-            width,
-            height,
-            image.name,
-        )
-        frames.append(PosedFrame(camera, path, image.name))
+        rotation = torch.from_numpy(_quat_to_rotmat(image.qvec)).float()
+        lens = lens.scaled(sx, sy, width, height)
+        frames.append(posed_frame(rotation, torch.tensor(image.tvec, dtype=torch.float32), lens, path, image.name))
     return frames
 
 
@@ -363,9 +356,7 @@ def load_colmap(
     scale: float = 1.0,
     *,
     images: str | None = None,
-    ignore_distortion: bool = False,
 ) -> list[View]:
     """Views of a COLMAP dataset (see the module docstring for models, image folders and the hold-out split)."""
     background = check_background(background)
-    return load_views(colmap_frames(root, split, images=images, ignore_distortion=ignore_distortion), background,
-                      max_views, scale)  # fmt: skip
+    return load_views(colmap_frames(root, split, images=images), background, max_views, scale)

@@ -1,4 +1,4 @@
-"""Image files of a posed set: read (alpha premultiplied), resized, laid on a background.
+"""Image files of a posed set: read (alpha premultiplied), undistorted (``lens``), resized, laid on a background.
 
 A service sets the most pixels an image may have (``pixel_limit``); an image above it is refused from its header,
 before it is decoded, and so is one above Pillow's own bomb limit, whatever the setting.
@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
+from .lens import UndistortionMaps, undistort_image, undistortion_maps
 from .posed import DatasetError, Photograph, PosedFrame, View, composite
 
 _PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
@@ -71,24 +72,36 @@ _WIDE_GREY = {"I;16": 65535.0, "I;16L": 65535.0, "I;16B": 65535.0, "I;16N": 6553
 
 def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
     """Image [H, W, 3] float32 in [0, 1], premultiplied by its alpha channel [H, W, 1] (None: it has none)."""
+    colour, alpha, _ = _decode(path, 1)
+    return colour, alpha
+
+
+def _decode(path: Path, reduce: int) -> tuple[Tensor, Tensor | None, int]:
+    """``read_premultiplied``, a JPEG decoded at 1/``reduce`` of its size where libjpeg's DCT scaling allows (1/2,
+    1/4, 1/8: a fraction of the work and memory of the whole decode), other images whole; and the reduction made
+    (pixel corners scale by its inverse; a reduced decode's last pixel may cover only part of a block)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             _check_pixels(path, *im.size)
+            width = im.size[0]
+            if reduce > 1 and im.format == "JPEG":
+                im.draft("RGB", (im.size[0] // reduce, im.size[1] // reduce))
+            made = round(width / im.size[0])
             if im.mode in _WIDE_GREY:
                 # Pillow's conversion to RGB clips these at 255, which would read a 16-bit grey photograph as white
                 grey = np.clip(np.asarray(im, dtype=np.float32) / _WIDE_GREY[im.mode], 0.0, 1.0)
-                return torch.from_numpy(np.repeat(grey[..., None], 3, axis=-1)), None
+                return torch.from_numpy(np.repeat(grey[..., None], 3, axis=-1)), None, made
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
     except (OSError, Image.DecompressionBombError) as exc:
         raise _unreadable(path, exc) from None
     rgb = torch.from_numpy(array[..., :3].copy())
     if not has_alpha:
-        return rgb, None
+        return rgb, None, made
     alpha = torch.from_numpy(array[..., 3:].copy())
-    return rgb * alpha, alpha
+    return rgb * alpha, alpha, made
 
 
 def read_image(path: Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
@@ -108,16 +121,51 @@ def resize_image(image: Tensor, width: int, height: int) -> Tensor:
 
 def load_frames(frames: list[PosedFrame], max_views: int | None = None, scale: float = 1.0) -> list[Photograph]:
     """The photographs of at most ``max_views`` of ``frames`` (evenly spaced, in order), each at its camera's size
-    times ``scale``."""
+    times ``scale``; a distorted one undistorted to its pinhole camera (``read_frame``)."""
+    maps: dict[tuple, UndistortionMaps] = {}  # per lens and size: every photograph of one lens shares its maps
     photographs = []
     for frame in _subsample(frames, max_views):
         camera = _scaled(frame.camera, scale)
+        colour, alpha = read_frame(frame, camera.width, camera.height, maps)
+        photographs.append(Photograph(camera, colour, alpha, frame.name))
+    return photographs
+
+
+def read_frame(
+    frame: PosedFrame, width: int, height: int, maps: dict[tuple, UndistortionMaps] | None = None
+) -> tuple[Tensor, Tensor | None]:
+    """The photograph of ``frame`` at ``width`` x ``height``: colour [height, width, 3] premultiplied by alpha
+    [height, width, 1] (None: opaque). ``maps`` keeps the undistortion maps of the lenses met, for the next call.
+
+    A pinhole photograph is resized, nothing more. A distorted one is decoded at the largest reduction (1/2, 1/4,
+    1/8 for a JPEG) that leaves its undistorted frame at least that size, undistorted there through maps computed
+    once per lens and size, then resized: at the 256 px a job judges at, a phone photograph is never held whole.
+    Where the undistorted frame samples outside the photograph (a lens past COLMAP's limits) its pixels are
+    transparent."""
+    if frame.lens is None:
         colour, alpha = read_premultiplied(frame.path)
         # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
         # what resizing the composite would.
-        alpha = None if alpha is None else resize_image(alpha, camera.width, camera.height)
-        photographs.append(Photograph(camera, resize_image(colour, camera.width, camera.height), alpha, frame.name))
-    return photographs
+        alpha = None if alpha is None else resize_image(alpha, width, height)
+        return resize_image(colour, width, height), alpha
+    pinhole = frame.camera
+    fits = lambda r: round(pinhole.width / r) >= width and round(pinhole.height / r) >= height  # noqa: E731
+    colour, alpha, reduce = _decode(frame.path, next((r for r in (8, 4, 2) if fits(r)), 1))
+    lens = frame.lens.scaled(1.0 / reduce, 1.0 / reduce, colour.shape[1], colour.shape[0])
+    middle = pinhole.resized(round(pinhole.width / reduce), round(pinhole.height / reduce))
+    key = (lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)
+    maps = {} if maps is None else maps
+    if key not in maps:
+        maps[key] = undistortion_maps(lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)
+    found = maps[key]
+    stacked = colour if alpha is None else torch.cat([colour, alpha], dim=-1)
+    out = undistort_image(stacked, found)
+    colour, alpha = out[..., :3], None if alpha is None else out[..., 3:]
+    if not found.all_valid:
+        inside = torch.from_numpy(found.valid)[..., None].to(colour.dtype)
+        colour, alpha = colour * inside, inside if alpha is None else alpha * inside
+    alpha = None if alpha is None else resize_image(alpha, width, height)
+    return resize_image(colour, width, height), alpha
 
 
 def load_views(frames: list[PosedFrame], background: tuple[float, float, float], max_views: int | None = None,

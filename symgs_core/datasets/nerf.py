@@ -4,11 +4,14 @@
 comes from ``camera_angle_x`` (or ``fl_x``/``fl_y``/``cx``/``cy`` when given, as in instant-ngp style files, also
 per frame). A single ``transforms.json`` (instant-ngp, nerfstudio), or a ``transforms_train.json`` without
 ``transforms_test.json``, is split by the LLFF hold-out (``posed.in_split``). Distortion coefficients (``k1``,
-``k2``, ``k3``, ``k4``, ``p1``, ``p2``) must be zero and ``camera_model``, when given, a pinhole or OPENCV one, as
-for COLMAP. nerfstudio trains (and by default exports its splats) in a frame of its own, turned, moved and scaled
-from the poses' frame; with its ``dataparser_transforms.json`` (``transform`` [3, 4], ``scale``) beside the
-transforms file, the poses are brought into that frame, as nerfstudio brings them. Intrinsics must be finite, sizes
-and focal lengths positive. An image path that leads out of the dataset folder is refused (``bad_transforms``).
+``k2``, ``k3``, ``k4``, ``p1``, ``p2``, also per frame, as nerfstudio allows; ``k4`` is nerfstudio's r^8 term) are
+undone on load (``lens``); ``camera_model``, when given, must be a pinhole or OPENCV one: fisheye and panoramic
+models (``OPENCV_FISHEYE``, ``EQUIRECTANGULAR``, instant-ngp's ``is_fisheye``) fail with
+``unsupported_camera_model``. nerfstudio trains (and by default exports its splats) in a frame of its own, turned,
+moved and scaled from the poses' frame; with its ``dataparser_transforms.json`` (``transform`` [3, 4], ``scale``)
+beside the transforms file, the poses are brought into that frame, as nerfstudio brings them. Intrinsics must be
+finite, sizes and focal lengths positive. An image path that leads out of the dataset folder is refused
+(``bad_transforms``).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from torch import Tensor
 
 from ..cameras import Camera
 from .images import image_size, load_views
+from .lens import Lens, posed_frame
 from .posed import (
     DatasetError,
     PosedFrame,
@@ -38,6 +42,9 @@ from .posed import (
 _NERF_SPLITS = ("train", "val", "test")
 _NERF_SINGLE = "transforms.json"  # instant-ngp and nerfstudio: every frame in one file
 _NERF_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+# nerfstudio's and instant-ngp's models that no pinhole holds whole (instant-ngp also says "is_fisheye": true).
+_NERF_UNSUPPORTED = ("OPENCV_FISHEYE", "FISHEYE624", "EQUIRECTANGULAR", "OMNIDIRECTIONALSTEREO_L",
+                     "OMNIDIRECTIONALSTEREO_R", "VR180_L", "VR180_R")  # fmt: skip
 _NERFSTUDIO_FRAME = "dataparser_transforms.json"
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 # NeRF-Synthetic's OpenGL camera axes (x right, y up, z back) to ours, OpenCV's (x right, y down, z forward); its own
@@ -88,13 +95,11 @@ def _nerf_frames(root: Path, name: str) -> list[PosedFrame]:
             raise DatasetError("bad_transforms", f"{path.name}: frame {i} transform_matrix is not a rigid 4x4 pose")
         image_path = _find_image(root, file_path)
         width, height = image_size(image_path)
-        fx, fy, cx, cy = _nerf_intrinsics({**meta, **frame}, width, height, path)
+        lens = _nerf_intrinsics({**meta, **frame}, width, height, path)
         rotation = (to_frame[:, :3] @ c2w[:3, :3] @ _GL_TO_CV).T
         t = -rotation @ (scale * (to_frame[:, :3] @ c2w[:3, 3] + to_frame[:, 3]))
-        camera = Camera(
-            torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), fx, fy, cx, cy, width, height, file_path
-        )
-        frames.append(PosedFrame(camera, image_path, file_path))
+        frames.append(posed_frame(torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), lens, image_path,
+                                  file_path))  # fmt: skip
     return frames
 
 
@@ -117,17 +122,17 @@ def _nerfstudio_frame(root: Path) -> tuple[np.ndarray, float]:
     return transform, scale
 
 
-def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[float, float, float, float]:
+def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> Lens:
+    """The camera of one frame (its own keys over the file's), for its image of ``width`` x ``height``."""
     model = meta.get("camera_model", "OPENCV")
+    if model in _NERF_UNSUPPORTED or meta.get("is_fisheye"):
+        name = model if model in _NERF_UNSUPPORTED else "is_fisheye"
+        raise DatasetError("unsupported_camera_model", f"{path.name}: camera model {name} is a fisheye or panoramic "
+                           "one, which no pinhole camera holds whole; undistort the photographs to a pinhole model "
+                           "first (COLMAP's image_undistorter)")  # fmt: skip
     if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
         raise DatasetError("unknown_camera_model", f"{path.name}: camera model {model!r} is not a pinhole one")
-    try:
-        distortion = [float(meta.get(k, 0.0)) for k in _NERF_DISTORTION]
-    except (TypeError, ValueError) as exc:
-        raise DatasetError("bad_transforms", f"{path.name}: bad distortion coefficients ({exc})") from None
-    if any(distortion):
-        raise DatasetError("distorted_camera", f"{path.name}: distortion coefficients are not zero; undistort the "
-                           "images first (nerfstudio's ns-process-data, COLMAP's image_undistorter)")  # fmt: skip
+    k1, k2, k3, k4, p1, p2 = (_nerf_number(meta, k, path, default=0.0, positive=False) for k in _NERF_DISTORTION)
     if "fl_x" in meta:
         # Given for a stated image size (pixels), rescaled to the size actually read.
         fl_x = _nerf_number(meta, "fl_x", path)
@@ -137,12 +142,14 @@ def _nerf_intrinsics(meta: dict, width: int, height: int, path: Path) -> tuple[f
         cx = _nerf_number(meta, "cx", path, default=w / 2, positive=False)
         cy = _nerf_number(meta, "cy", path, default=h / 2, positive=False)
         sx, sy = width / w, height / h
-        return fl_x * sx, fl_y * sy, cx * sx, cy * sy
-    angle = _nerf_number(meta, "camera_angle_x", path)
-    if angle >= math.pi:
-        raise DatasetError("bad_transforms", f"{path.name}: camera_angle_x must be in (0, pi) radians, got {angle}")
-    fx = 0.5 * width / math.tan(0.5 * angle)
-    return fx, fx, width / 2.0, height / 2.0
+        fx, fy, cx, cy = fl_x * sx, fl_y * sy, cx * sx, cy * sy
+    else:
+        angle = _nerf_number(meta, "camera_angle_x", path)
+        if angle >= math.pi:
+            raise DatasetError("bad_transforms", f"{path.name}: camera_angle_x must be in (0, pi) radians, got {angle}")
+        fx = fy = 0.5 * width / math.tan(0.5 * angle)
+        cx, cy = width / 2.0, height / 2.0
+    return Lens(fx, fy, cx, cy, width, height, radial=(k1, k2, k3, k4), tangential=(p1, p2))
 
 
 def _nerf_number(meta: dict, key: str, path: Path, default: float | None = None, positive: bool = True) -> float:

@@ -12,13 +12,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..cameras import Camera
+
+if TYPE_CHECKING:
+    from .lens import Lens
 
 Split = Literal["train", "val", "test", "all"]
 Layout = Literal["nerf_synthetic", "colmap"]
@@ -30,7 +33,8 @@ class DatasetError(ValueError):
     """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
 
     Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, image_too_large,
-    malformed, unknown_camera_model, distorted_camera, camera_missing, empty; and, from the pipeline, images_mismatch
+    malformed, unknown_camera_model, unsupported_camera_model (a fisheye or panoramic model, which no pinhole holds
+    whole), distorted_camera (a lens too strong to undo), camera_missing, empty; and, from the pipeline, images_mismatch
     (``views.check_photographs``) and too_few_images (``views.dataset_views``).
     """
 
@@ -68,11 +72,13 @@ class Photograph:
 
 @dataclass(frozen=True)
 class PosedFrame:
-    """A camera and the image file it belongs to, before the image is decoded."""
+    """A camera and the image file it belongs to, before the image is decoded. ``lens``: the distorted camera the
+    file was taken with, when it was (``camera`` is then the pinhole it is undistorted to on load)."""
 
     camera: Camera
     path: Path
     name: str
+    lens: Lens | None = None
 
 
 def composite(colour: Tensor, alpha: Tensor | None, background: Tensor | tuple[float, float, float]) -> Tensor:

@@ -216,7 +216,7 @@ def compress(
         fitting=fitting,
         psnr_input=psnr_input,
         psnr_floor=floor,
-        cameras=Cameras(*views.sets, disjoint=True, background=tuple(background.tolist())),
+        cameras=Cameras(*views.sets, disjoint=True, background=tuple(background.tolist()), photographs=views.read),
         seconds=dict(report.seconds),
         device=str(device),
         config=config,

@@ -376,3 +376,26 @@ def test_printable_names_of_any_script_are_kept(tmp_path: Path) -> None:
     entries = {**NERF, "scene/notes/façade vue 東 😀.txt": b"notes"}
     extract_dataset(_write_zip(tmp_path / "a.zip", entries), tmp_path / "out", LIMITS)
     assert (tmp_path / "out" / "scene" / "notes" / "façade vue 東 😀.txt").read_bytes() == b"notes"
+
+
+@pytest.mark.realdata
+def test_phone_photographs_pass_the_default_limits(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """instant-ngp's fox, zipped as a user would (50 JPEGs of 1080x1920 and its transforms.json), is taken whole by
+    the limits a service starts with (``worker.settings.Settings``): 2 MP a photograph, under the 16.7 MP cap."""
+    from tests.conftest import shared_file
+    from worker.settings import Settings
+
+    fox = shared_file("instant_ngp_fox_capture")
+    for name in [n for n in os.environ if n.startswith("SYMGS_")]:
+        monkeypatch.delenv(name)
+    settings = Settings()
+    limits = ArchiveLimits(max_entries=settings.max_archive_entries, max_bytes=settings.max_extracted_bytes,
+                           max_images=settings.max_images, max_image_pixels=settings.max_image_pixels)  # fmt: skip
+    archive = tmp_path / "fox.zip"
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as zf:  # JPEGs: nothing left to deflate
+        for path in sorted(fox.rglob("*")):
+            if path.is_file():
+                zf.write(path, f"fox/{path.relative_to(fox).as_posix()}")
+    dataset = extract_dataset(archive, tmp_path / "out", limits)
+    assert (dataset.layout, dataset.root, dataset.images) == ("nerf_synthetic", "fox", 50)
+    assert archive.stat().st_size < settings.max_upload_bytes

@@ -24,6 +24,7 @@ from symgs_core.datasets import (
     load_colmap,
     load_dataset,
     load_nerf_synthetic,
+    load_photographs,
     pixel_limit,
     read_colmap_model,
     read_premultiplied,
@@ -153,18 +154,25 @@ def test_nerfstudio_frame_brings_the_poses_where_its_splats_are(tmp_path: Path) 
     assert err.value.code == "bad_transforms"
 
 
-def test_nerf_cameras_must_be_pinholes_without_distortion(tmp_path: Path) -> None:
+def test_nerf_camera_models(tmp_path: Path) -> None:
+    """Distortion is undone on load (``test_lens``); fisheye and panoramic models are refused by name."""
     write_nerf(tmp_path, {"train": poses(2)})
     path = tmp_path / "transforms_train.json"
     meta = json.loads(path.read_text())
-    for changes, code in (({"k1": 0.05}, "distorted_camera"), ({"camera_model": "OPENCV_FISHEYE"},
-                          "unknown_camera_model"), ({"p2": "x"}, "bad_transforms")):  # fmt: skip
+    for changes, code, named in (
+        ({"camera_model": "OPENCV_FISHEYE"}, "unsupported_camera_model", "OPENCV_FISHEYE"),
+        ({"camera_model": "EQUIRECTANGULAR"}, "unsupported_camera_model", "EQUIRECTANGULAR"),
+        ({"is_fisheye": True, "k1": 0.1}, "unsupported_camera_model", "is_fisheye"),
+        ({"camera_model": "KANNALA"}, "unknown_camera_model", "KANNALA"),
+        ({"p2": "x"}, "bad_transforms", "p2"),
+    ):
         path.write_text(json.dumps({**meta, **changes}))
-        with pytest.raises(DatasetError) as err:
+        with pytest.raises(DatasetError, match=named) as err:
             load_nerf_synthetic(tmp_path, "train")
         assert err.value.code == code
     path.write_text(json.dumps({**meta, "k1": 0.0, "p1": 0, "camera_model": "OPENCV"}))
-    assert len(load_nerf_synthetic(tmp_path, "all")) == 2
+    frames = dataset_frames(tmp_path, "all")
+    assert len(frames) == 2 and all(f.lens is None for f in frames)  # no distortion: read as it is
 
 
 def test_nerf_errors(tmp_path: Path) -> None:
@@ -409,8 +417,11 @@ def test_colmap_downsampled_images_rescale_intrinsics(tmp_path: Path) -> None:
     [
         ("SIMPLE_PINHOLE", [50.0, 20.0, 15.0], None),
         ("OPENCV", [50.0, 50.0, 20.0, 15.0, 0.0, 0.0, 0.0, 0.0], None),
-        ("SIMPLE_RADIAL", [50.0, 20.0, 15.0, 0.01], "distorted_camera"),
-        ("OPENCV_FISHEYE", [50.0, 50.0, 20.0, 15.0, 0.0, 0.0, 0.0, 0.0], "unknown_camera_model"),
+        ("SIMPLE_RADIAL", [50.0, 20.0, 15.0, 0.0], None),
+        ("OPENCV_FISHEYE", [50.0, 50.0, 20.0, 15.0, 0.0, 0.0, 0.0, 0.0], "unsupported_camera_model"),
+        ("SIMPLE_RADIAL_FISHEYE", [50.0, 20.0, 15.0, 0.0], "unsupported_camera_model"),
+        ("RADIAL_FISHEYE", [50.0, 20.0, 15.0, 0.0, 0.0], "unsupported_camera_model"),
+        ("THIN_PRISM_FISHEYE", [50.0, 50.0, 20.0, 15.0] + [0.0] * 8, "unsupported_camera_model"),
         ("PINHOLE", [50.0, 50.0, 20.0], "malformed"),
         ("KANNALA", [50.0, 20.0, 15.0], "unknown_camera_model"),
     ],
@@ -421,13 +432,12 @@ def test_colmap_camera_models(tmp_path: Path, model: str, params: list[float], c
     if code is None:
         (frame,) = colmap_frames(tmp_path)
         assert (frame.camera.fx, frame.camera.fy, frame.camera.cx, frame.camera.cy) == (50.0, 50.0, 20.0, 15.0)
+        assert frame.lens is None  # no distortion: the photograph is read as it is
         return
     with pytest.raises(DatasetError) as err:
         colmap_frames(tmp_path)
     assert err.value.code == code
-    if code == "distorted_camera":
-        (frame,) = colmap_frames(tmp_path, ignore_distortion=True)
-        assert frame.camera.fx == 50.0
+    assert model in err.value.message or code == "malformed"
 
 
 def test_colmap_errors(tmp_path: Path) -> None:
@@ -642,3 +652,25 @@ def test_written_nerf_split_reads_back_as_it_was_written(tmp_path: Path) -> None
         write_nerf_synthetic(tmp_path / "mixed", "test", [cams[0], cams[0].resized(20, 15)], images[:1] * 2)
     with pytest.raises(ValueError, match="one image per camera"):
         write_nerf_synthetic(tmp_path / "short", "test", cams, images[:2])
+
+
+@pytest.mark.realdata
+def test_the_fox_capture_loads_undistorted() -> None:
+    """instant-ngp's fox: 50 phone photographs with one shared OPENCV lens (k1 k2 p1 p2). Each comes out as the
+    pinhole COLMAP's undistorter gives it: the lens's focal lengths, the frame cropped to the photograph (1067x1898
+    of 1080x1920), read at a job's 256 px through a quarter-size decode."""
+    root = shared_file("instant_ngp_fox_capture")
+    frames = dataset_frames(root, "all")
+    assert len(frames) == 50 and len(dataset_frames(root, "test")) == 7
+    for frame in frames:
+        cam, lens = frame.camera, frame.lens
+        assert lens is not None and (lens.width, lens.height) == (1080, 1920)
+        assert lens.radial[:2] == (0.0578421, -0.0805099) and lens.tangential == (-0.000980296, 0.00015575)
+        assert (cam.fx, cam.fy) == (1375.52, 1374.49)
+        assert (cam.width, cam.height) == (1067, 1898)
+        assert cam.cx == pytest.approx(554.558 * 1067 / 1080) and cam.cy == pytest.approx(965.268 * 1898 / 1920)
+    photos = load_photographs(root, "test", scale=256 / 1898)
+    assert len(photos) == 7
+    for photo in photos:
+        assert photo.alpha is None and photo.colour.shape == (256, 144, 3)
+        assert (photo.camera.width, photo.camera.height) == (144, 256) and float(photo.colour.std()) > 0.1

@@ -68,6 +68,7 @@ def test_symmetric_scene_halves_the_archive_at_high_fidelity(symmetric, symmetri
     assert report.fitting.worst >= report.psnr_floor >= 39.0
     assert report.cameras.disjoint and report.cameras.evaluation.name == "evaluation"
     assert report.cameras.background == (0.0, 0.0, 0.0)  # renders of the input are drawn on black
+    assert report.cameras.photographs is None
 
 
 def test_decoded_archive_is_the_scene_that_was_judged(symmetric, symmetric_result):
@@ -298,6 +299,8 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     mirrored = compress(upload, images=tmp_path, config=config).report
     plain = compress(upload, images=tmp_path, config=replace(config, use_mirrors=False)).report
     assert mirrored.cameras.evaluation.source == "photographs"
+    read = mirrored.cameras.photographs
+    assert read is not None and (read.width, read.height, read.scale) == (64, 64, 1.0)  # judged at their own size
     assert mirrored.accepted_levels and mirrored.fitting.worst >= mirrored.psnr_floor
     assert mirrored.output_bytes < 0.8 * plain.output_bytes
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
