@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -49,7 +50,8 @@ class Camera:
         if not 0.0 < self.near < math.inf:
             raise ValueError(f"the near plane must be positive and finite, got {self.near}")
 
-    @property
+    # Kept once built: a fine-tune renders one camera thousands of times, and each build copies to its device.
+    @cached_property
     def K(self) -> Tensor:
         """Intrinsics [3, 3]."""
         return torch.tensor(
@@ -58,7 +60,7 @@ class Camera:
             device=self.R.device,
         )
 
-    @property
+    @cached_property
     def viewmat(self) -> Tensor:
         """World-to-camera [4, 4]."""
         m = torch.eye(4, dtype=self.R.dtype, device=self.R.device)

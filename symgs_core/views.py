@@ -73,7 +73,7 @@ class RenderedTargets(Sequence[View]):
 
     def __init__(self, scene: GaussianScene, cameras: list[Camera], background: Tensor) -> None:
         self.scene, self.cameras, self.background = scene.detach(), cameras, background
-        self._targets: dict[int, tuple[Tensor, Tensor]] = {}
+        self._views: dict[int, View] = {}  # the camera moved to the scene's device once, with its target
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -82,11 +82,11 @@ class RenderedTargets(Sequence[View]):
     def __getitem__(self, index: int) -> View:  # type: ignore[override]
         from .render import render
 
-        camera = self.cameras[index].to(self.scene.device)
-        if index not in self._targets:
+        if index not in self._views:
+            camera = self.cameras[index].to(self.scene.device)
             out = render(self.scene, camera, self.background)
-            self._targets[index] = (out.image.detach(), out.alpha.detach() >= OBJECT_ALPHA)
-        return View(camera, *self._targets[index])
+            self._views[index] = View(camera, out.image.detach(), out.alpha.detach() >= OBJECT_ALPHA)
+        return self._views[index]
 
 
 @dataclass
