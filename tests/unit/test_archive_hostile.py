@@ -23,7 +23,7 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from benchmarks.fuzz_archive import claiming
+from tests.tools.fuzz_archive import claiming
 from symgs_core.codec import (
     MAGIC,
     ArchiveContents,
