@@ -152,7 +152,7 @@ def cached_capture(
 ) -> Path:
     """``train_capture(folder)`` saved at ``ply``: trained on the first call, read from there on later ones (training
     takes minutes, and benchmarks of one capture should score one scene)."""
-    from ..ply import save_scene
+    from ..export import save_scene
 
     ply = Path(ply)
     if not ply.is_file():

@@ -35,7 +35,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Service]:
 
 @pytest.fixture(scope="module")
 def large_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     path = tmp_path_factory.mktemp("large") / "large.ply"

@@ -13,8 +13,9 @@ from symgs_core.bench import splat_transform
 from symgs_core.bench.peers import PEERS, run_peers
 from symgs_core.bench.run import OURS_PLAIN, BenchSettings, bench_scene
 from symgs_core.config import CompressConfig
+from symgs_core.export import save_scene
 from symgs_core.pipeline import compress
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.report import Report
 from symgs_core.synthetic import synthetic_scene
 from tests.unit.test_pictures import png

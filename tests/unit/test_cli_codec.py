@@ -12,8 +12,9 @@ import pytest
 
 from service.cli import main
 from symgs_core.bench.photos import photographed
+from symgs_core.export import save_scene
 from symgs_core.export.formats import EXPORTS
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.synthetic import synthetic_scene
 
 FAST = ["--iterations", "5", "--resolution", "48", "--eval-resolution", "48", "--train-views", "4", "--fit-views", "2",

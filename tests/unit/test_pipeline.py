@@ -454,7 +454,7 @@ def test_a_scene_in_memory_is_refused_as_its_file_would_be(attribute, index, val
 def test_a_scene_in_memory_is_repaired_and_converted_as_its_file_would_be(tmp_path):
     """An infinite opacity is clamped as the reader clamps it (the caller's scene untouched), and float64 or float16
     attributes are taken as float32, as a PLY's double properties are: the archives are those of the scene's file."""
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
 
     scene = synthetic_scene("global", n=200, seed=4).scene
     scene.opacities[7] = math.inf
