@@ -16,10 +16,12 @@ from symgs_core.bench.photos import photographed
 from symgs_core.config import CompressConfig
 from symgs_core.detect import DetectConfig, detect
 from symgs_core.pipeline import compress, decompress
-from symgs_core.pipeline.compress import _Reporter
-from symgs_core.pipeline.levels import SETTLED_COST, memberships, run_levels
+from symgs_core.pipeline.encode import Fitted
+from symgs_core.pipeline.job import Reporter
+from symgs_core.pipeline.levels import SETTLED_COST, LevelSearch, memberships, run_levels
 from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
+from symgs_core.scene import GaussianScene
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import dataset_views, evaluate, self_supervised_views
 
@@ -28,6 +30,17 @@ FAST = CompressConfig.for_preset(
     "lossless", psnr_budget=0.5, iterations=10, train_views=4, fit_views=2, eval_views=2, resolution=64,
     eval_resolution=64, max_levels=2, pictures=False,
 )
+
+
+def _archive_of(size: int) -> Fitted:
+    """A judged archive of ``size`` bytes, for a judge that prices levels without encoding them."""
+    return Fitted(LevelState.plain(GaussianScene.empty(0)), bytes(size), math.inf, None)
+
+
+def _levels(scene, views, config, judge, *, floor, reference=math.inf, rate=None):  # noqa: ANN001, ANN202
+    search = LevelSearch(scene, views, floor, reference, 1.0, 10_000, None, rate)
+    outcome = run_levels(search, config=config, judge=judge, report=Reporter(None, None), checkpoint=None)
+    return outcome.state, outcome.psnr, outcome.records
 
 
 @pytest.fixture(scope="module")
@@ -107,9 +120,8 @@ def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
     judged = []
 
     def run(bytes_of):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
-                          judge=lambda st, p: judged.append(len(st.stored)) or bytes_of(st), plain_bytes=10_000,
-                          steps=None, report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: judged.append(len(st.stored)) or _archive_of(bytes_of(st)),
+                       floor=30.0)
 
     state, psnr, records = run(lambda st: 10_000)  # no smaller than the plain codec's
     assert judged and state.normals.shape[0] == 0 and math.isinf(psnr)
@@ -129,10 +141,8 @@ def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_j
     judged, priced = [], []
 
     def run(ratio):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
-                          judge=lambda st, p: judged.append(p) or 9_000, plain_bytes=10_000,
-                          rate=lambda before, after: priced.append((before, after)) or ratio, steps=None,
-                          report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: judged.append(p) or _archive_of(9_000), floor=30.0,
+                       rate=lambda before, after: priced.append((before, after)) or ratio)
 
     state, _, records = run(3.0)  # a third of the scene dropped, three times the bytes per Gaussian: no
     assert priced and all(math.isinf(before) for before, _ in priced)
@@ -152,9 +162,8 @@ def test_a_membership_that_costs_the_codec_almost_nothing_is_judged_without_a_fi
     config = replace(FAST, max_levels=1, iterations=4)
 
     def run(cost, reference=math.inf):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=20.0, reference=reference, extent=1.0,
-                          judge=lambda st, p: 9_000, plain_bytes=10_000, rate=lambda before, after: 1.0 + cost,
-                          steps=None, report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: _archive_of(9_000), floor=20.0, reference=reference,
+                       rate=lambda before, after: 1.0 + cost)
 
     _, _, records = run(SETTLED_COST / 2)
     assert records[0].accepted and records[0].iterations == 0
@@ -261,7 +270,7 @@ def test_a_job_changes_no_process_wide_state(symmetric):
 
 
 def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None:  # noqa: ANN001
-    from symgs_core.pipeline.compress import _fingerprint
+    from symgs_core.pipeline.checkpoint import fingerprint
 
     scene, config = synthetic_scene("global", n=64, seed=1).scene, CompressConfig.for_preset()
     here, there = tmp_path / "host_a" / "data", tmp_path / "host_b" / "elsewhere"
@@ -269,9 +278,9 @@ def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None
         (root / "images").mkdir(parents=True)
         (root / "images" / "r_0.png").write_bytes(b"\x89PNG pixels")
         (root / "transforms_train.json").write_text('{"frames": []}')
-    assert _fingerprint(scene, config, here) == _fingerprint(scene, config, there)
+    assert fingerprint(scene, config, here) == fingerprint(scene, config, there)
     (there / "images" / "r_0.png").write_bytes(b"\x89PNG other pixels")
-    assert _fingerprint(scene, config, here) != _fingerprint(scene, config, there)
+    assert fingerprint(scene, config, here) != fingerprint(scene, config, there)
 
 
 def test_the_fast_preset_encodes_once_at_fixed_steps_and_reports_what_it_measured() -> None:
