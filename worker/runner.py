@@ -60,7 +60,7 @@ class _Heartbeat(threading.Thread):
     def run(self) -> None:
         while not self._halt.wait(self.lease_s / 3):
             try:
-                if not self.store.renew_lease(self.job_id, self.token, self.lease_s):
+                if not self.store.leases.renew(self.job_id, self.token, self.lease_s):
                     self.lost.set()
                     return
             except RedisError:  # Redis unreachable for a moment: try again next beat; the lease outlives 2 misses
@@ -163,7 +163,7 @@ def run_job(
     record = store.get(job_id)
     if record is None or record.finished:
         return "skipped"  # deleted, or done by an earlier delivery of the same message
-    if not store.acquire_lease(job_id, token, settings.lease_seconds):
+    if not store.leases.acquire(job_id, token, settings.lease_seconds):
         return "skipped"  # another worker runs it; if that worker dies, a reaper re-queues the job
     heartbeat = _Heartbeat(store, job_id, token, settings.lease_seconds)
     heartbeat.start()
@@ -176,7 +176,7 @@ def run_job(
     finally:
         heartbeat.stop()
         if not failed:  # after a failure the on_failure hook marks the job first, then releases the lease
-            store.release_lease(job_id, token)
+            store.leases.release(job_id, token)
             delete_if_requested(store, storage, job_id)
 
 
@@ -248,7 +248,7 @@ def _run_leased(
         mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump(),
     )  # fmt: skip
     if done is not None and done.finished_at is not None:
-        store.record_duration(done.finished_at - started)
+        store.metrics.record_duration(done.finished_at - started)
     return "succeeded"
 
 
@@ -283,9 +283,9 @@ def mark_failed(
 ) -> JobRecord | None:
     """The failure hook's work: record a machine-readable code and the message, then free the job. Nothing is
     marked when another worker holds the job's lease (this delivery failed while that one runs it)."""
-    if not store.renew_lease(job_id, token, lease_s) and store.lease_held(job_id):
+    if not store.leases.renew(job_id, token, lease_s) and store.leases.held(job_id):
         return None
     record = store.transition(job_id, "failed", error_code=code, error_message=message[:2000])
-    store.release_lease(job_id, token)
+    store.leases.release(job_id, token)
     delete_if_requested(store, storage, job_id)
     return record
