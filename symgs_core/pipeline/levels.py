@@ -22,7 +22,7 @@ from torch import Tensor
 from ..cameras import scene_bounds
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig
-from ..mirror import Plane, reflect
+from ..mirror import reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate
@@ -334,8 +334,7 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        accepted = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
-        mirrors = detect(state.stored, detect_config, exclude=accepted)
+        mirrors = detect(state.stored, detect_config, exclude=state.planes)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
         attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,
