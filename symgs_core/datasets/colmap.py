@@ -20,13 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import Camera
+from ..cameras import Camera, View
 from .images import image_size, load_views
 from .posed import (
     DatasetError,
     PosedFrame,
     Split,
-    View,
     check_background,
     finite,
     in_split,

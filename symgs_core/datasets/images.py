@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
-from .posed import DatasetError, Photograph, PosedFrame, View, composite
+from ..cameras import Camera, View
+from .posed import DatasetError, Photograph, PosedFrame, composite
 
 _PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
 
@@ -122,8 +122,12 @@ def load_frames(frames: list[PosedFrame], max_views: int | None = None, scale: f
 
 def load_views(frames: list[PosedFrame], background: tuple[float, float, float], max_views: int | None = None,
                scale: float = 1.0) -> list[View]:  # fmt: skip
-    """``load_frames``, laid on ``background``."""
-    return [View(p.camera, p.on(background), p.name) for p in load_frames(frames, max_views, scale)]
+    """``load_frames``, laid on ``background``; every pixel is the object's (no scene tells them apart here)."""
+    views = []
+    for p in load_frames(frames, max_views, scale):
+        image = p.on(background)
+        views.append(View(p.camera, image, image.new_ones(image.shape[:2], dtype=torch.bool), p.name))
+    return views
 
 
 def _scaled(camera: Camera, scale: float) -> Camera:

@@ -21,13 +21,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..cameras import Camera, View
 from .images import image_size, load_views
 from .posed import (
     DatasetError,
     PosedFrame,
     Split,
-    View,
     check_background,
     finite,
     held_out,
