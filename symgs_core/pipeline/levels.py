@@ -22,7 +22,8 @@ from torch import Tensor
 from ..cameras import scene_bounds
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig
-from ..mirror import reflect
+from ..devices import HOST
+from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate
@@ -63,8 +64,7 @@ class Membership:
     """One way to apply a detected mirror: the plane, the Gaussians reflected (left) and dropped (right), and the
     colour-agreement gate that produced it (None: geometry alone)."""
 
-    normal: torch.Tensor  # [3]
-    offset: float
+    plane: Plane
     left: torch.Tensor  # [L] indices into the working set
     right: torch.Tensor  # [R]
     votes: float
@@ -72,7 +72,7 @@ class Membership:
     gate: float | None
 
 
-def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor,
+def consistent_bits(state: LevelState, plane: Plane, left: torch.Tensor,
                     right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """``left`` and ``right`` with the pairs whose earlier-level bits differ taken out.
 
@@ -84,7 +84,8 @@ def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left
     if state.bits.shape[1] == 0 or left.numel() == 0 or right.numel() == 0:
         return left, right
     with torch.no_grad():
-        mirrored = reflect(state.stored.select(left).detach().to("cpu"), normal.cpu(), offset).means.numpy()
+        normal, _ = plane.tensor(HOST)
+        mirrored = reflect(state.stored.select(left).detach().to(HOST), normal, plane.offset).means.numpy()
     dropped = state.stored.means.detach()[right.to(state.stored.device)].cpu().numpy()
     _, nearest_left = cKDTree(mirrored).query(dropped, k=1)
     _, nearest_right = cKDTree(dropped).query(mirrored, k=1)
@@ -94,7 +95,7 @@ def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left
 
 
 def apply_mirror(
-    state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor, right: torch.Tensor
+    state: LevelState, plane: Plane, left: torch.Tensor, right: torch.Tensor
 ) -> LevelState:
     """The next level's state: ``right`` members dropped, ``left`` marked in a new bit column, the plane appended.
 
@@ -111,8 +112,8 @@ def apply_mirror(
     dtype = state.normals.dtype
     return LevelState(
         stored=state.stored.select(keep),
-        normals=torch.cat([state.normals, normal.to(device, dtype).reshape(1, 3)]),
-        offsets=torch.cat([state.offsets, torch.tensor([float(offset)], device=device, dtype=dtype)]),
+        normals=torch.cat([state.normals, plane.tensor(device)[0].to(dtype).reshape(1, 3)]),
+        offsets=torch.cat([state.offsets, torch.tensor([plane.offset], device=device, dtype=dtype)]),
         bits=torch.cat([state.bits[keep], is_left[keep][:, None]], dim=1),
     )
 
@@ -120,19 +121,18 @@ def apply_mirror(
 def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 - detect.Mirror
     """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first; every
     one with its earlier-level bits made consistent (``consistent_bits``)."""
-    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32, device=state.stored.device)
-    offset = float(mirror.plane.offset)
-    left, right = consistent_bits(state, normal, offset, mirror.left, mirror.right)
+    plane = mirror.plane
+    left, right = consistent_bits(state, plane, mirror.left, mirror.right)
     coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
-    base = Membership(normal, offset, left, right, float(mirror.votes), coverage, None)
-    mismatch, nearest = colour_mismatch(state.stored, normal, offset, left, right)
+    base = Membership(plane, left, right, float(mirror.votes), coverage, None)
+    mismatch, nearest = colour_mismatch(state.stored, plane, left, right)
     out = [base]
     for gate in GATES:
         gated_left, gated_right = gated(left, right, mismatch, nearest, gate)
         if gated_right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
             continue
         coverage = (gated_left.numel() + gated_right.numel()) / max(len(state.stored), 1)
-        out.append(Membership(normal, offset, gated_left, gated_right, base.votes, coverage, gate))
+        out.append(Membership(plane, gated_left, gated_right, base.votes, coverage, gate))
     return out
 
 
@@ -183,7 +183,7 @@ def plan_attempts(
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
     attempts = []
     for m in worth:
-        candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
+        candidate = apply_mirror(state, m.plane, m.left, m.right)
         before = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
         predicted, settled = None, False
         if rate is not None:
@@ -343,7 +343,7 @@ def run_levels(
         for attempt in attempts:
             membership, psnr_before = attempt.membership, attempt.psnr_before
             t0 = time.perf_counter()
-            candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
+            candidate = apply_mirror(state, membership.plane, membership.left, membership.right)
             skipped = not attempt.pays(floor, best_bytes)
             if skipped or attempt.settled:
                 tuned, psnr_after, run = candidate.detach(), psnr_before, 0
