@@ -62,18 +62,8 @@ class JobRecord:
     _JSON = ("params", "scene", "images", "mirrors", "metrics", "artifacts")
 
     def to_hash(self) -> dict[str, str]:
-        out: dict[str, str] = {}
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if name == "params":
-                out[name] = value.model_dump_json()
-            elif name in self._JSON:
-                out[name] = json.dumps(value)
-            elif isinstance(value, bool):
-                out[name] = "1" if value else "0"
-            else:
-                out[name] = "" if value is None else str(value)
-        return out
+        values = {name: getattr(self, name) for name in self.__dataclass_fields__ if name != "params"}
+        return {**_hash_fields(values), "params": self.params.model_dump_json()}
 
     @classmethod
     def from_hash(cls, h: dict[str, str]) -> JobRecord:
