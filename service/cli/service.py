@@ -67,12 +67,13 @@ def serve(args: argparse.Namespace) -> int:
     import uvicorn
     from pydantic import ValidationError
 
-    from worker.gateway import Settings
-
-    from ..api.auth import refusal
     from .parser import CliError
 
-    try:
+    try:  # the gateway builds the Celery app from the settings as it is read: a bad setting raises there already
+        from worker.gateway import Settings
+
+        from ..api.auth import refusal
+
         settings = Settings()
     except ValidationError as exc:
         raise CliError("; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())) from None

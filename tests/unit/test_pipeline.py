@@ -326,8 +326,8 @@ def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
     tiny = scene.with_(means=scene.means * 1e-6, scales=scene.scales + math.log(1e-6))
     sets = [self_supervised_views(s, train=0, fit=3, eval=0, resolution=32, eval_resolution=32,
                                   background=torch.zeros(3)) for s in (scene, tiny)]  # fmt: skip
-    for (_, target, _), (_, tiny_target, _) in zip(sets[0].fit, sets[1].fit):
-        assert target.max() > 0.1 and torch.allclose(tiny_target, target, atol=1e-3)
+    for view, tiny_view in zip(sets[0].fit, sets[1].fit):
+        assert view.image.max() > 0.1 and torch.allclose(tiny_view.image, view.image, atol=1e-3)
     config = CompressConfig.for_preset("balanced", fit_views=3, eval_views=2, eval_resolution=32, max_levels=0,
                                        device="cpu", pictures=False)  # fmt: skip
     at_size, small = (compress(s, config=config).report for s in (scene, tiny))
@@ -387,10 +387,10 @@ def test_photographs_laid_on_another_background_are_those_read_on_it(tmp_path, m
     for ours, theirs, before in zip((laid.train, laid.fit, laid.eval), (direct.train, direct.fit, direct.eval),
                                     (black.train, black.fit, black.eval), strict=True):  # fmt: skip
         assert len(ours) == len(theirs) > 0
-        for (camera, image, mask), (their_camera, their_image, their_mask) in zip(ours, theirs, strict=True):
-            assert torch.equal(image, their_image) and torch.equal(mask, their_mask)
-            assert torch.equal(camera.R, their_camera.R) and torch.equal(camera.t, their_camera.t)
-            assert camera.width == their_camera.width == 32
+        for view, their in zip(ours, theirs, strict=True):
+            assert torch.equal(view.image, their.image) and torch.equal(view.mask, their.mask)
+            assert torch.equal(view.camera.R, their.camera.R) and torch.equal(view.camera.t, their.camera.t)
+            assert view.camera.width == their.camera.width == 32
         # Where the photographs are transparent the new colour shows; opaque photographs keep their own backdrop.
         assert any(not torch.equal(a.image, b.image) for a, b in zip(ours, before, strict=True)) == alpha
 
@@ -424,12 +424,13 @@ def test_photographs_of_one_flat_colour_are_refused_as_such():
     can be beaten there, and the message says what they show rather than an infinite PSNR."""
     from types import SimpleNamespace
 
+    from symgs_core.cameras import View
     from symgs_core.datasets import DatasetError
     from symgs_core.views import check_photographs
 
     mask = torch.zeros(8, 8, dtype=torch.bool)
     mask[2:6, 2:6] = True
-    views = [(None, torch.full((8, 8, 3), 0.5), mask)] * 2
+    views = [View(None, torch.full((8, 8, 3), 0.5), mask)] * 2
     with pytest.raises(DatasetError, match="one flat colour") as refused:
         check_photographs(SimpleNamespace(psnr_object=60.0), views)
     assert refused.value.code == "images_mismatch" and "inf" not in str(refused.value)
