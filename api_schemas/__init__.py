@@ -5,6 +5,8 @@ from __future__ import annotations
 from .errors import ErrorDetail, ErrorResponse
 from .events import JobEvent
 from .jobs import (
+    JOB_STATES,
+    QUEUES,
     TERMINAL_STATES,
     ImagesInfo,
     Job,
@@ -57,6 +59,8 @@ __all__ = [
     "Preset",
     "PresetInfo",
     "Queue",
+    "QUEUES",
+    "JOB_STATES",
     "Report",
     "ReportConfig",
     "SceneInfo",

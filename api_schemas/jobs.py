@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from .params import JobParams
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+JOB_STATES: tuple[JobState, ...] = get_args(JobState)
 TERMINAL_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 Queue = Literal["gpu", "cpu"]
+QUEUES: tuple[Queue, ...] = get_args(Queue)  # the workers' queues: a GPU worker's and a CPU worker's
 
 
 class JobError(BaseModel):

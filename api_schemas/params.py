@@ -11,15 +11,23 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from symgs_core.config import DEFAULT_PRESET, PRESETS, SEED_MAX, DeviceChoice, Preset
+from symgs_core.config import DEFAULT_PRESET, PRESETS, SETTINGS_BY_NAME, DeviceChoice, Preset
 
 DevicePreference = DeviceChoice
 _PRESETS_TEXT = "; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items())
 
 
+def _setting(name: str, **more: Any) -> Any:
+    """The field of the job setting ``name`` (``symgs_core.config.JOB_SETTINGS``): its bounds and help, None (the
+    preset's value) when left out."""
+    setting = SETTINGS_BY_NAME[name]
+    return Field(None, ge=setting.low, le=setting.high, description=setting.help, **more)
+
+
 class JobParams(BaseModel):
     """Compression parameters. Every field is optional: a field left out (or null) takes the default of the preset
-    (``GET /v1/presets`` lists them). Bounds keep one job within a worker's means.
+    (``GET /v1/presets`` lists them). Fields, bounds and help are ``symgs_core.config.JOB_SETTINGS``, which the
+    command line's options are made from too; the bounds keep one job within a worker's means.
 
     ``device``: ``cuda`` waits for a GPU worker, ``cpu`` runs on a CPU worker, ``auto`` takes a GPU worker when one
     is alive and a CPU worker otherwise.
@@ -39,25 +47,16 @@ class JobParams(BaseModel):
     )
 
     preset: Preset = Field(DEFAULT_PRESET, description=f"what the job may spend and must keep. {_PRESETS_TEXT}")
-    psnr_budget: float | None = Field(
-        None, ge=0, le=60, allow_inf_nan=False, strict=False,
-        description="dB of PSNR the job may cost (default: the preset's)",
-    )
-    max_levels: int | None = Field(None, ge=0, le=16, description="cap on mirror levels")
-    iterations: int | None = Field(None, ge=0, le=20_000, description="optimisation steps per level")
-    train_views: int | None = Field(
-        None, ge=1, le=512, description="cameras the fine-tune trains on (photographs: all that do not fit)"
-    )
-    fit_views: int | None = Field(None, ge=1, le=256, description="cameras every decision is taken on")
-    eval_views: int | None = Field(None, ge=1, le=256, description="cameras the report scores (fitted on nothing)")
-    resolution: int | None = Field(
-        None, ge=16, le=2048, description="longest side of training views, pixels (photographs: eval_resolution)"
-    )
-    eval_resolution: int | None = Field(
-        None, ge=16, le=2048, description="longest side of fitting and evaluation views, pixels"
-    )
-    use_mirrors: bool | None = Field(None, description="false: the plain codec only (the baseline)")
-    seed: int | None = Field(None, ge=0, le=SEED_MAX)
+    psnr_budget: float | None = _setting("psnr_budget", allow_inf_nan=False, strict=False)
+    max_levels: int | None = _setting("max_levels")
+    iterations: int | None = _setting("iterations")
+    train_views: int | None = _setting("train_views")
+    fit_views: int | None = _setting("fit_views")
+    eval_views: int | None = _setting("eval_views")
+    resolution: int | None = _setting("resolution")
+    eval_resolution: int | None = _setting("eval_resolution")
+    use_mirrors: bool | None = _setting("use_mirrors")
+    seed: int | None = _setting("seed")
     device: DevicePreference = "auto"
 
     @field_validator("preset", "device", mode="before")

@@ -107,7 +107,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, help="write the figures here too")
     args = parser.parse_args()
 
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     with tempfile.TemporaryDirectory() as tmp:

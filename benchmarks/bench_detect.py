@@ -240,7 +240,7 @@ def command_runs(ply: Path, repeats: int, max_mirrors: int) -> dict:
 
 
 def write_scene(n: int, path: Path) -> None:
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
 
     save_scene(benchmark_scene(n).scene, path)
 

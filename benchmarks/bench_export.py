@@ -29,9 +29,9 @@ from pathlib import Path
 
 import torch
 
-from symgs_core.export import compressed_ply_order, write_compressed_ply, write_spz
+from symgs_core.export import compressed_ply_order, save_scene, write_compressed_ply, write_spz
 from symgs_core.pipeline import decompress
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.scene import GaussianScene
 from symgs_core.views import evaluate, self_supervised_views
 

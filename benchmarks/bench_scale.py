@@ -114,7 +114,7 @@ def _rss_mib() -> float:
 
 def warm_up(work: Path) -> None:
     """A tiny compression first, so that no measured run pays numba's first compilation of the kernels."""
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     tiny = work / "warm_up.ply"
@@ -131,7 +131,8 @@ def prepare(work: Path, labels: list[str], exe: str, sog: Path) -> dict[str, Pat
         return paths
     import torch
 
-    from symgs_core.ply import load_scene, save_scene
+    from symgs_core.export import save_scene
+    from symgs_core.ply import load_scene
     from symgs_core.scene import GaussianScene
     from symgs_core.synthetic import Pose, apply_pose
 

@@ -80,7 +80,7 @@ def main() -> None:
                 fidelity(read_glb(glb), views),
             ]  # fmt: skip
             if args.peer:
-                from symgs_core.ply import save_scene
+                from symgs_core.export import save_scene
 
                 save_scene(reference, work / "reference.ply")
                 peer_s = convert(args.splat_transform, work / "reference.ply", work / "theirs.sog")

@@ -231,7 +231,7 @@ def api_job(work: Path, mode: str = "gpu") -> dict:
     """A generated SH3 scene with a planted mirror through the API and a worker of ``mode`` (gpu: on CUDA)."""
     from service.cli.stack import LocalStack
     from service.client.http import SymgsClient
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     scene = work / "api_sh3.ply"
@@ -262,7 +262,7 @@ def api_job(work: Path, mode: str = "gpu") -> dict:
 
 def timing(run: Run, work: Path, labels: list[str], cpu_labels: set[str], profile_label: str | None,
            base_path: Path | None) -> dict:  # fmt: skip
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
 
     base = base_scene(base_path)
     rows = []

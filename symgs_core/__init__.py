@@ -16,7 +16,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _PUBLIC = {
     "GaussianScene": "scene",
     "load_scene": "ply",
-    "save_scene": "ply",
+    "save_scene": "export",
     "PlyError": "ply",
     "Camera": "cameras",
     "orbit_cameras": "cameras",

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -111,6 +112,17 @@ class Camera:
             raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
         fx = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
         return Camera(R.float(), t.float(), fx, fx, width / 2.0, height / 2.0, width, height, name, near)
+
+
+class View(NamedTuple):
+    """A camera and the image it sees, the target a render of it is scored against: ``image`` [H, W, 3] float32 in
+    [0, 1], the size of ``camera``; ``mask`` [H, W] bool, the object's own pixels (every pixel where no scene told
+    them apart); ``name``, where the image came from ("" for a render)."""
+
+    camera: Camera
+    image: Tensor
+    mask: Tensor
+    name: str = ""
 
 
 def near_for(radius: float) -> float:

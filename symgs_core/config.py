@@ -64,12 +64,51 @@ def budget_for_floor(floor: float, nominal: float) -> float:
 
 
 SEED_MAX = 2**31 - 1  # seeds as every door takes them: the CLI's --seed, the API's seed, CompressConfig.seed
-# Integer settings and their bounds.
-_INTEGER_RANGES = (
-    ("max_levels", 0, 16), ("iterations", 0, 100_000),
-    ("train_views", 1, 1000), ("fit_views", 1, 1000), ("eval_views", 1, 1000),
-    ("resolution", 16, 4096), ("eval_resolution", 16, 4096), ("seed", 0, SEED_MAX),
-)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Setting:
+    """A job setting a caller may give beside its preset, the same at every door: a ``CompressConfig`` field, a
+    ``JobParams`` field (left out or null: the preset's value) and an option of `symgs compress` and `symgs bench`
+    (``flag``). Numbers lie in ``low`` .. ``high`` whichever door they came by: a job must fit a shared worker's
+    means, and a local run of the same settings is the same job."""
+
+    name: str
+    kind: type[int] | type[float] | type[bool]
+    help: str
+    low: int | float | None = None
+    high: int | float | None = None
+    flag: str = ""  # the command line's option; "" for --name-with-dashes
+
+    @property
+    def option(self) -> str:
+        return self.flag or "--" + self.name.replace("_", "-")
+
+    @property
+    def bounds(self) -> str:
+        return f"{self.low}..{self.high}"
+
+    def holds(self, value: float) -> bool:
+        """Whether ``value`` lies within the bounds (a setting without any holds every value)."""
+        return (self.low is None or self.low <= value) and (self.high is None or value <= self.high)
+
+
+# What a caller may set beside ``preset`` and ``device`` (each a Literal above), in the order the doors list them.
+JOB_SETTINGS: tuple[Setting, ...] = (
+    Setting("psnr_budget", float, "dB of PSNR all lossy stages may cost together (default: the preset's)", 0, 60),
+    Setting("max_levels", int, "cap on mirror levels", 0, 16),
+    Setting("iterations", int, "optimisation steps per level", 0, 20_000),
+    Setting("train_views", int, "cameras the fine-tune trains on (photographs: all that do not fit)", 1, 512),
+    Setting("fit_views", int, "cameras every decision is taken on", 1, 256),
+    Setting("eval_views", int, "cameras the report scores (fitted on nothing)", 1, 256),
+    Setting("resolution", int, "longest side of the training views, pixels (photographs: the evaluation resolution)",
+            16, 2048),  # fmt: skip
+    Setting("eval_resolution", int, "longest side of the fitting and evaluation views, pixels", 16, 2048),
+    Setting("use_mirrors", bool, "false (--no-mirrors): the plain codec alone, no mirror (the baseline)",
+            flag="--no-mirrors"),  # fmt: skip
+    Setting("seed", int, "seed of the camera rigs and the fine-tunes", 0, SEED_MAX),
+)
+SETTINGS_BY_NAME = {setting.name: setting for setting in JOB_SETTINGS}
 
 
 @dataclass(frozen=True)
@@ -122,16 +161,16 @@ class CompressConfig:
             raise ValueError(f"preset must be one of {', '.join(PRESET_NAMES)}, got {self.preset!r}")
         if self.psnr_budget is None:
             object.__setattr__(self, "psnr_budget", PRESETS[self.preset].budget)
-        budget = self.budget
-        if not (math.isfinite(budget) and 0 <= budget <= 60):
-            raise ValueError(f"psnr_budget must be a number of dB in 0..60, got {budget}")
+        budget, budgets = self.budget, SETTINGS_BY_NAME["psnr_budget"]
+        if not (math.isfinite(budget) and budgets.holds(budget)):
+            raise ValueError(f"psnr_budget must be a number of dB in {budgets.bounds}, got {budget}")
         # PSNR of images in 0..1 is never below 0 dB, and photographs stored at 8 bits show at most about 59 dB.
         if not (isinstance(self.nominal_psnr, (int, float)) and 0 < self.nominal_psnr <= 60):
             raise ValueError(f"nominal_psnr must be a number of dB in (0, 60], got {self.nominal_psnr}")
-        for name, low, high in _INTEGER_RANGES:
-            value = getattr(self, name)
-            if not (isinstance(value, int) and low <= value <= high):
-                raise ValueError(f"{name} must be in {low}..{high}, got {value}")
+        for setting in JOB_SETTINGS:
+            value = getattr(self, setting.name)
+            if setting.kind is int and not (isinstance(value, int) and setting.holds(value)):
+                raise ValueError(f"{setting.name} must be in {setting.bounds}, got {value}")
         if not isinstance(self.detect, dict):
             raise ValueError(f"detect must be a dict of DetectConfig settings, got {self.detect!r}")
         if self.detect:  # imported only then: the package imports torch, which the API process (never given any) lacks

@@ -18,6 +18,7 @@ expansion is exact, O(N) per level, and needs no nearest-neighbour search.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -25,6 +26,14 @@ from torch import Tensor
 
 from .scene import GaussianScene
 from .sh import reflect_sh_rest
+
+
+def canonical_sign(normal: Sequence[float]) -> float:
+    """1 or -1: the sign that turns a plane's normal [3] (and its offset) into the hemisphere whose largest-magnitude
+    component is positive (the first of equal ones), the one way of writing a plane that detection and archives
+    use."""
+    axis = max(range(3), key=lambda i: abs(normal[i]))
+    return 1.0 if normal[axis] >= 0 else -1.0
 
 
 @dataclass(frozen=True)
@@ -51,10 +60,9 @@ class Plane:
 
     def canonical(self) -> Plane:
         """The same plane with its normal in the hemisphere whose largest-magnitude component is positive."""
-        n = self.normal
-        axis = max(range(3), key=lambda i: abs(n[i]))
-        if n[axis] >= 0:
+        if canonical_sign(self.normal) > 0:
             return self
+        n = self.normal
         return Plane((-n[0], -n[1], -n[2]), -self.offset)
 
     def tensor(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:

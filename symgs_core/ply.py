@@ -379,18 +379,3 @@ def ply_bytes(scene: GaussianScene, *, comments: tuple[str, ...] = ()) -> bytes:
     header += [f"property float {name}" for name in properties] + ["end_header"]
     # UTF-8: the reader takes any bytes in a comment, so a comment read from a file is written back as it came
     return b"".join((("\n".join(header) + "\n").encode("utf-8"), rows.data))  # one copy of the rows, not two
-
-
-def save_scene(scene: GaussianScene, path: str | os.PathLike[str], *, comments: tuple[str, ...] = ()) -> None:
-    """Write ``scene`` to ``path`` as ``ply_bytes`` does. A name another format owns (``.spz``, ``.compressed.ply``,
-    ...) is refused: those bytes would not be that format; ``symgs_core.export.export_scene`` writes it."""
-    from .export.formats import by_path
-
-    try:
-        owner = by_path(path)
-    except ValueError:  # no format's extension (a temporary name, say): the caller's choice
-        owner = None
-    if owner is not None and owner.name != "ply":
-        raise ValueError(f"{Path(path).name} names a {owner.title} file; save_scene writes a graphdeco PLY, "
-                         "export_scene writes the format a name asks for")
-    Path(path).write_bytes(ply_bytes(scene, comments=comments))

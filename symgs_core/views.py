@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 from torch import Tensor
 
-from .cameras import Camera, fibonacci_directions, near_for, scene_bounds
+from .cameras import Camera, View, fibonacci_directions, near_for, scene_bounds
 from .devices import HOST
 from .metrics import mse_to_psnr, ssim
 from .report import CameraSet, Fidelity, PhotoScale
@@ -48,12 +48,6 @@ MATCH_MARGIN_DB = 3.0  # how much better than a flat colour an upload must match
 _SET_SEEDS = {"training": 1, "fitting": 2, "evaluation": 3}
 
 
-class View(NamedTuple):
-    camera: Camera
-    image: Tensor  # [H, W, 3] target
-    mask: Tensor  # [H, W] bool: the object's own pixels
-
-
 class PhotoTarget(NamedTuple):
     """A photograph before it is laid on a background, with the object's pixels in its view."""
 
@@ -61,7 +55,7 @@ class PhotoTarget(NamedTuple):
     mask: Tensor  # [H, W] bool
 
     def on(self, background: Tensor) -> View:
-        return View(self.photograph.camera, self.photograph.on(background), self.mask)
+        return View(self.photograph.camera, self.photograph.on(background), self.mask, self.photograph.name)
 
 
 class RenderedTargets(Sequence[View]):
@@ -220,7 +214,8 @@ def flat_colour_psnr(views: Sequence[View]) -> float:
     """PSNR, over the object's pixels of ``views``, of the best flat colour per view (its mean there); NaN where
     no view has any."""
     error, pixels = 0.0, 0
-    for _, target, mask in views:
+    for view in views:
+        target, mask = view.image, view.mask
         if mask.any():
             drawn = target[mask]
             error += float(((drawn - drawn.mean(dim=0)) ** 2).mean(dim=-1).sum())
@@ -235,8 +230,8 @@ def photographed_backdrop(views: Sequence[View]) -> Tensor | None:
 
     Photographs without an alpha channel carry their backdrop (NeRF-Synthetic's white, a studio sweep); rendered on
     any other, the upload would miss every pixel around it, and every decision would chase that."""
-    around = torch.cat([target[~mask].reshape(-1, 3) for _, target, mask in views])
-    total = sum(int(mask.numel()) for _, _, mask in views)
+    around = torch.cat([view.image[~view.mask].reshape(-1, 3) for view in views])
+    total = sum(int(view.mask.numel()) for view in views)
     if not total or len(around) < BACKDROP_SHARE * total:
         return None
     colour = around.median(dim=0).values
@@ -347,7 +342,8 @@ def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *,
     ssims = []
     for start in range(0, len(views), EVAL_BATCH):
         chunk = [views[i] for i in range(start, min(start + EVAL_BATCH, len(views)))]
-        for (_, target, mask), out in zip(chunk, render_many(scene, [v.camera for v in chunk], background)):
+        for view, out in zip(chunk, render_many(scene, [v.camera for v in chunk], background)):
+            target, mask = view.image, view.mask
             error = ((out.image - target) ** 2).mean(dim=-1)
             sums.append(torch.stack([error.sum(), (error * mask).sum(), mask.sum()]).double())
             pixels += error.numel()

@@ -8,9 +8,10 @@ from __future__ import annotations
 from celery import Celery
 from kombu import Queue
 
+from api_schemas import QUEUES
+
 from .settings import Settings, get_settings
 
-QUEUES = ("gpu", "cpu")
 COMPRESS_TASK = "symgs.compress"
 
 

@@ -16,7 +16,9 @@ from dataclasses import dataclass, field
 from celery import Celery
 from redis import RedisError
 
-from .celery_app import QUEUES, send_compress
+from api_schemas import QUEUES
+
+from .celery_app import send_compress
 from .routing import choose_queue
 from .settings import Settings
 from .storage import Storage, StorageError
@@ -51,12 +53,12 @@ def recover_lost(store: JobStore, storage: Storage, celery: Celery, settings: Se
     A job whose client asked to delete it while it ran is deleted once it ends here, as its worker would have."""
     now = time.time()
     for job_id in store.ids_in_state("running"):
-        if store.lease_held(job_id):
+        if store.leases.held(job_id):
             continue
         record = store.get(job_id)
         if record is None or record.state != "running":
             continue
-        if not store.claim_requeue(job_id, record.attempts, settings.job_ttl):
+        if not store.leases.claim_requeue(job_id, record.attempts, settings.job_ttl):
             continue  # another worker's sweep took this attempt
         if record.cancel_requested:
             store.transition(job_id, "cancelled", message="cancelled by the client")
@@ -92,7 +94,7 @@ def recover_dropped(store: JobStore, celery: Celery, settings: Settings, report:
     lease period; should the first message surface after all, the lease lets one delivery run the job and the other
     skip it.
     """
-    empty = {queue for queue, depth in store.queue_depth(QUEUES).items() if depth == 0}
+    empty = {queue for queue, depth in store.metrics.queue_depth(QUEUES).items() if depth == 0}
     if not empty:
         return
     stale = time.time() - settings.lease_seconds
@@ -100,7 +102,7 @@ def recover_dropped(store: JobStore, celery: Celery, settings: Settings, report:
         record = store.get(job_id)
         if record is None or record.state != "queued" or record.queue not in empty or record.updated_at > stale:
             continue
-        if store.lease_held(job_id) or not store.claim_resend(job_id, settings.lease_seconds):
+        if store.leases.held(job_id) or not store.leases.claim_resend(job_id, settings.lease_seconds):
             continue
         send_compress(celery, job_id, record.queue)
         report.requeued.append(job_id)
@@ -111,7 +113,7 @@ def reroute_stranded(store: JobStore, celery: Celery, settings: Settings, report
     """Send ``auto`` jobs waiting on the gpu queue to the cpu queue when no GPU worker is alive any more.
 
     The gpu message stays queued; whichever delivery runs first takes the job and the other finds it done."""
-    if store.live_workers("gpu", settings.lease_seconds) > 0:
+    if store.heartbeats.live("gpu", settings.lease_seconds) > 0:
         return
     for job_id in store.ids_in_state("queued"):
         record = store.get(job_id)
@@ -192,13 +194,13 @@ class Maintenance(threading.Thread):
         self._sweeper.start()
         while True:
             try:
-                self.store.worker_beat(self.mode, self.worker_name)
+                self.store.heartbeats.beat(self.mode, self.worker_name)
             except Exception:  # noqa: BLE001 - Redis away: beat again next time
                 log.exception("worker heartbeat failed; retrying")
             if self._halt.wait(self.settings.lease_seconds / 3):
                 break
         try:
-            self.store.worker_gone(self.mode, self.worker_name)
+            self.store.heartbeats.gone(self.mode, self.worker_name)
         except RedisError:
             log.warning("could not remove worker %s from the live set", self.worker_name)
 

@@ -14,4 +14,4 @@ def choose_queue(store: JobStore, device: DevicePreference, *, alive_within_s: f
         return "gpu"
     if device == "cpu":
         return "cpu"
-    return "gpu" if store.live_workers("gpu", alive_within_s) > 0 else "cpu"
+    return "gpu" if store.heartbeats.live("gpu", alive_within_s) > 0 else "cpu"

@@ -60,7 +60,7 @@ class _Heartbeat(threading.Thread):
     def run(self) -> None:
         while not self._halt.wait(self.lease_s / 3):
             try:
-                if not self.store.renew_lease(self.job_id, self.token, self.lease_s):
+                if not self.store.leases.renew(self.job_id, self.token, self.lease_s):
                     self.lost.set()
                     return
             except RedisError:  # Redis unreachable for a moment: try again next beat; the lease outlives 2 misses
@@ -137,7 +137,6 @@ def headline(report: Report) -> tuple[list[MirrorSummary], JobMetrics]:
 def _write_results(storage: Storage, record: JobRecord, result: CompressResult) -> str:
     """Write the job's files; returns what could not be written and why ("" when every export was)."""
     from symgs_core.export.formats import EXPORTS
-    from symgs_core.pipeline import decompress
 
     def write(name: str, data: bytes) -> None:
         storage.write_artifact(owner=record.owner, job_id=record.id, name=name, data=data)
@@ -146,12 +145,10 @@ def _write_results(storage: Storage, record: JobRecord, result: CompressResult) 
     write("report.json", json.dumps(result.report.as_json(), indent=1).encode())
     for name, png in result.images.items():
         write(f"charts/{name}.png", png)
-    # The decoded scene is what viewers get; decoding the archive we store proves the archive is whole.
-    decoded = decompress(result.archive)
     skipped = []
-    for fmt in EXPORTS:
+    for fmt in EXPORTS:  # the decoded scene is what viewers get: the pipeline's decode of the archive stored here
         try:
-            write(fmt.artifact, fmt.write(decoded))
+            write(fmt.artifact, fmt.write(result.decoded))
         except ValueError as exc:  # a scene some format cannot hold (its fixed point, its ranges): the rest stand
             skipped.append(f"{fmt.artifact} not written: {exc}")
     return "; ".join(skipped)
@@ -166,7 +163,7 @@ def run_job(
     record = store.get(job_id)
     if record is None or record.finished:
         return "skipped"  # deleted, or done by an earlier delivery of the same message
-    if not store.acquire_lease(job_id, token, settings.lease_seconds):
+    if not store.leases.acquire(job_id, token, settings.lease_seconds):
         return "skipped"  # another worker runs it; if that worker dies, a reaper re-queues the job
     heartbeat = _Heartbeat(store, job_id, token, settings.lease_seconds)
     heartbeat.start()
@@ -179,7 +176,7 @@ def run_job(
     finally:
         heartbeat.stop()
         if not failed:  # after a failure the on_failure hook marks the job first, then releases the lease
-            store.release_lease(job_id, token)
+            store.leases.release(job_id, token)
             delete_if_requested(store, storage, job_id)
 
 
@@ -220,6 +217,7 @@ def _run_leased(
                     progress=_Progress(store, job_id, work.save_checkpoints),
                     checkpoint_dir=folder / "checkpoints",
                     should_stop=stop,
+                    charts=False,  # drawn below, once, with the peers beside the job's own points
                 )
         except Cancelled:
             if heartbeat.lost.is_set():
@@ -229,12 +227,17 @@ def _run_leased(
         except input_errors() as exc:
             raise _as_uploaded(exc, scene.name, record.scene.get("filename") or scene.name) from None
         work.save_checkpoints()
-        if result.images and settings.peer_seconds > 0 and not heartbeat.lost.is_set():
-            from .peers import peer_charts
+        if result.images and not heartbeat.lost.is_set():
+            from symgs_core.pictures import job_charts
 
-            store.progress(job_id, stage="peers", level=None, fraction=1.0, message="running the peers' formats")
-            result.images.update(peer_charts(scene, images, result.report, seconds=settings.peer_seconds,
-                                             work=folder / "peers"))  # fmt: skip
+            from .peers import upload_peers
+
+            peers = []
+            if settings.peer_seconds > 0:
+                store.progress(job_id, stage="peers", level=None, fraction=1.0, message="running the peers' formats")
+                peers = upload_peers(scene, images, result.report, seconds=settings.peer_seconds,
+                                     work=folder / "peers")  # fmt: skip
+            result.images.update(job_charts(result.report, peers=peers))
     if heartbeat.lost.is_set():
         return "lost"  # the worker that took the job over writes the same files
     skipped = _write_results(storage, record, result)
@@ -245,7 +248,7 @@ def _run_leased(
         mirrors=[m.model_dump() for m in mirrors], metrics=metrics.model_dump(),
     )  # fmt: skip
     if done is not None and done.finished_at is not None:
-        store.record_duration(done.finished_at - started)
+        store.metrics.record_duration(done.finished_at - started)
     return "succeeded"
 
 
@@ -280,9 +283,9 @@ def mark_failed(
 ) -> JobRecord | None:
     """The failure hook's work: record a machine-readable code and the message, then free the job. Nothing is
     marked when another worker holds the job's lease (this delivery failed while that one runs it)."""
-    if not store.renew_lease(job_id, token, lease_s) and store.lease_held(job_id):
+    if not store.leases.renew(job_id, token, lease_s) and store.leases.held(job_id):
         return None
     record = store.transition(job_id, "failed", error_code=code, error_message=message[:2000])
-    store.release_lease(job_id, token)
+    store.leases.release(job_id, token)
     delete_if_requested(store, storage, job_id)
     return record

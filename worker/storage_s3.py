@@ -20,7 +20,7 @@ import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -294,7 +294,7 @@ class S3Storage(Storage):
         """Local folders of dead processes, and multipart uploads that a dead process never completed (a bucket
         keeps, and bills, their parts until they are aborted)."""
         removed = sweep_folders(self.cache / "staging", older_than_s) + sweep_folders(self.cache / "jobs", older_than_s)
-        cutoff = datetime.fromtimestamp(time.time() - older_than_s, timezone.utc)
+        cutoff = datetime.fromtimestamp(time.time() - older_than_s, UTC)
         # the service's own uploads only: under the prefix as a folder, in the jobs' layout
         stale = [upload for upload in self._unfinished(self.key_root()) if upload["Initiated"] < cutoff]
         for upload in stale:

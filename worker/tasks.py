@@ -83,10 +83,10 @@ def _queue_again(store: JobStore, job_id: str, token: str, settings: Settings) -
     record = store.get(job_id)
     if record is None or record.state != "running" or record.attempts >= settings.max_attempts:
         return False
-    if store.cancel_requested(job_id) or not store.renew_lease(job_id, token, settings.lease_seconds):
+    if store.cancel_requested(job_id) or not store.leases.renew(job_id, token, settings.lease_seconds):
         return False
     if store.transition(job_id, "queued", message="the storage stopped answering; queued again") is None:
         return False
-    store.release_lease(job_id, token)
+    store.leases.release(job_id, token)
     send_compress(app, job_id, record.queue, countdown=settings.lease_seconds)
     return True

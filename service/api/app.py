@@ -15,10 +15,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from api_schemas import JobEvent
-from worker.celery_app import make_celery
-from worker.settings import Settings
-from worker.storage_backend import storage_from_settings
-from worker.store import JobStore
+from worker.gateway import JobStore, Settings, make_celery, storage_from_settings
 
 from ..dashboard.routes import router as dashboard_router
 from ..docs.routes import router as docs_router

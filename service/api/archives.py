@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Literal
 
-from worker.storage import stored_name_problem
+from worker.gateway import stored_name_problem
 
 from .errors import ApiError
 

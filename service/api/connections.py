@@ -16,7 +16,7 @@ from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from worker.settings import get_settings
+from worker.gateway import get_settings
 
 
 class GuardedH11Protocol(H11Protocol):

@@ -11,7 +11,7 @@ from redis import RedisError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas import ErrorResponse
-from worker.storage import StorageError
+from worker.gateway import StorageError
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ import re
 
 from api_schemas import Job, JobError, JobLinks
 from symgs_core.export.formats import EXPORTS
-from worker.store import JobRecord, JobStore
+from worker.gateway import JobRecord, JobStore
 
 from .errors import not_found
 

@@ -5,9 +5,8 @@ from __future__ import annotations
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector, CollectorRegistry
 
-from worker.celery_app import QUEUES
-from worker.settings import Settings
-from worker.store import JobStore
+from api_schemas import QUEUES
+from worker.gateway import JobStore, Settings
 
 
 class JobCollector(Collector):
@@ -20,7 +19,7 @@ class JobCollector(Collector):
             jobs.add_metric([state], count)
         yield jobs
 
-        buckets, total, count = self.store.durations()
+        buckets, total, count = self.store.metrics.durations()
         yield HistogramMetricFamily(
             "symgs_job_duration_seconds",
             "Time from a job's start to its success",
@@ -29,13 +28,13 @@ class JobCollector(Collector):
         )
 
         depth = GaugeMetricFamily("symgs_queue_depth", "Jobs waiting in each queue", labels=["queue"])
-        for queue, n in self.store.queue_depth(QUEUES).items():
+        for queue, n in self.store.metrics.queue_depth(QUEUES).items():
             depth.add_metric([queue], n)
         yield depth
 
         workers = GaugeMetricFamily("symgs_workers", "Workers alive (heartbeat within one lease)", labels=["mode"])
         for mode in QUEUES:
-            workers.add_metric([mode], self.store.live_workers(mode, self.settings.lease_seconds))
+            workers.add_metric([mode], self.store.heartbeats.live(mode, self.settings.lease_seconds))
         yield workers
 
 

@@ -16,11 +16,7 @@ from starlette.requests import Request
 
 from api_schemas import JobParams
 from symgs_core.ply_header import PlyError, PlyHeader, read_header
-from worker.celery_app import send_compress
-from worker.routing import choose_queue
-from worker.settings import Settings
-from worker.storage import Storage, StorageError
-from worker.store import JobRecord, JobStore
+from worker.gateway import JobRecord, JobStore, Settings, Storage, StorageError, choose_queue, send_compress
 
 from .archives import ArchiveLimits, extract_dataset
 from .errors import ApiError
@@ -121,7 +117,7 @@ async def submit(
         new_id = uuid.uuid4().hex
         if idempotency_key is not None and mark is not None:
             winner = await run_in_threadpool(
-                store.claim_idempotency, owner, idempotency_key, new_id, mark, settings.job_ttl
+                store.idempotency.claim, owner, idempotency_key, new_id, mark, settings.job_ttl
             )
             if winner is not None:  # a concurrent request with the same key won
                 known = await run_in_threadpool(_same_request, store, idempotency_key, winner, mark)
@@ -169,12 +165,12 @@ def _same_request(store: JobStore, key: str, binding: tuple[str, str], mark: str
 
 
 def _known_job(store: JobStore, owner: str, key: str, mark: str) -> JobRecord | None:
-    binding = store.idempotent_job(owner, key)
+    binding = store.idempotency.bound(owner, key)
     if binding is None:
         return None
     record = _same_request(store, key, binding, mark)
     if record is None:  # the job was deleted: the key is free again
-        store.forget_idempotency(owner, key)
+        store.idempotency.forget(owner, key)
     return record
 
 

@@ -15,7 +15,7 @@ from python_multipart.multipart import MultipartParser, MultipartState, parse_op
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
-from worker.storage import StorageError
+from worker.gateway import StorageError
 
 from .errors import ApiError
 

@@ -8,7 +8,12 @@ from pathlib import Path
 
 from symgs_core.config import DEVICE_CHOICES, PRESET_NAMES
 
+from .job_options import add_job_options, job_overrides
 from .parser import CliError, check_output, check_seed
+
+# The job settings a bench takes; it varies the budget and the mirrors itself (--presets, --sweep, --mirrors).
+BENCH_SETTINGS = ("max_levels", "iterations", "train_views", "fit_views", "eval_views", "resolution",
+                  "eval_resolution", "seed")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,16 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
     p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
     # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.
-    p.add_argument("--iterations", type=int, help="optimisation steps per mirror level")
-    p.add_argument("--max-levels", type=int, help="cap on mirror levels")
-    p.add_argument("--train-views", type=int)
-    p.add_argument("--fit-views", type=int)
-    p.add_argument("--eval-views", type=int)
-    p.add_argument(
-        "--resolution", type=int, help="longest side of the training views, pixels (photographs: --eval-resolution)"
-    )
-    p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
-    p.add_argument("--seed", type=int)
+    add_job_options(p, BENCH_SETTINGS)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto")
     p.set_defaults(func=_bench)
 
@@ -72,14 +68,9 @@ def _bench(args: argparse.Namespace) -> int:
         raise CliError(f"scene files not found: {', '.join(missing)}")
     if args.sweep < 0 or args.other_views < 1 or args.peer_timeout <= 0 or args.sog_timeout <= 0:
         raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
-    check_seed("--seed", args.seed)
     check_seed("--other-seed", args.other_seed)
     check_output("--out", args.out, folder=True)
-    overrides = {
-        "iterations": args.iterations, "max_levels": args.max_levels, "train_views": args.train_views,
-        "fit_views": args.fit_views, "eval_views": args.eval_views, "resolution": args.resolution,
-        "eval_resolution": args.eval_resolution, "seed": args.seed, "device": args.device,
-    }  # fmt: skip
+    overrides = {**job_overrides(args, BENCH_SETTINGS), "device": args.device}
     exe, why = _splat_transform(args)
     peers = () if args.no_peers else tuple(p for p in PEERS if not (args.no_sog and p.slow))
     settings = BenchSettings(

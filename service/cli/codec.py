@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from symgs_core.config import DEFAULT_PRESET, DEVICE_CHOICES, PRESET_NAMES, PRESETS
 from symgs_core.export.formats import extensions
 
+from .job_options import add_job_options, job_overrides
 from .parser import (
     CliError,
     cannot_write,
@@ -39,20 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=PRESET_NAMES, default=DEFAULT_PRESET,
                    help="; ".join(f"{name}: {spec.summary}" for name, spec in PRESETS.items()))
     # Left out, each setting takes the preset's value (symgs_core.config): the same job as over HTTP or Python.
-    p.add_argument("--psnr-budget", type=float, help="dB of PSNR all lossy stages may cost together")
-    p.add_argument("--max-levels", type=int, help="cap on mirror levels")
-    p.add_argument("--iterations", type=int, help="optimisation steps per level")
-    p.add_argument(
-        "--resolution", type=int, help="longest side of the training views, pixels (photographs: --eval-resolution)"
-    )
-    p.add_argument("--eval-resolution", type=int, help="longest side of the fitting and evaluation views, pixels")
-    p.add_argument(
-        "--train-views", type=int, help="cameras the fine-tune trains on (photographs: all that do not fit)"
-    )
-    p.add_argument("--fit-views", type=int, help="cameras every decision is taken on")
-    p.add_argument("--eval-views", type=int, help="cameras the report scores (fitted on nothing)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--no-mirrors", action="store_true", help="baseline: the codec alone")
+    add_job_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else plain lines)")
     p.set_defaults(func=_compress)
 
@@ -68,14 +56,10 @@ def config_from_args(args: argparse.Namespace) -> CompressConfig:
     """The job's settings from ``symgs compress`` arguments: the preset's, then each option given."""
     from symgs_core.config import CompressConfig
 
-    check_seed("--seed", args.seed)
+    overrides = job_overrides(args)
     try:
-        return CompressConfig.for_preset(
-            args.preset, psnr_budget=args.psnr_budget, max_levels=args.max_levels, iterations=args.iterations,
-            resolution=args.resolution, eval_resolution=args.eval_resolution, train_views=args.train_views,
-            fit_views=args.fit_views, eval_views=args.eval_views, seed=args.seed, device=args.device,
-            use_mirrors=False if args.no_mirrors else None, pictures=args.pictures is not None,
-        )  # fmt: skip
+        return CompressConfig.for_preset(args.preset, **overrides, device=args.device,
+                                         pictures=args.pictures is not None)  # fmt: skip
     except ValueError as exc:
         raise CliError(str(exc)) from exc
 

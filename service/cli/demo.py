@@ -23,7 +23,7 @@ DEMO_PARAMS = {"iterations": 40, "train_views": 6, "fit_views": 3, "eval_views":
 
 def make_scene(path: Path, gaussians: int) -> str:
     """Write a generated symmetric scene (one object, mirror x = 0) and return a description of it."""
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     made = synthetic_scene("global", n=gaussians, seed=7, sh_degree=1)

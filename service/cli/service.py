@@ -67,19 +67,19 @@ def serve(args: argparse.Namespace) -> int:
     import uvicorn
     from pydantic import ValidationError
 
-    from worker.settings import Settings
-
     from .parser import CliError
 
-    try:
+    try:  # the gateway builds the Celery app from the settings as it is read: a bad setting raises there already
+        from worker.gateway import Settings
+
+        from ..api.auth import refusal
+
         settings = Settings()
     except ValidationError as exc:
         raise CliError("; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())) from None
-    if not settings.keys and settings.auth != "none":
-        raise CliError(
-            "no API keys: set SYMGS_API_KEYS to comma-separated Bearer keys (e.g. SYMGS_API_KEYS=$(openssl rand -hex "
-            "24)), or SYMGS_AUTH=none to run without authentication"
-        )
+    why = refusal(settings)
+    if why is not None:
+        raise CliError(why)
     descriptors = _raise_open_files_limit()
     uvicorn.run(
         "service.api.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
@@ -112,7 +112,7 @@ def _backlog(descriptors: int, max_pending: int) -> int:
 
 
 def worker(args: argparse.Namespace) -> int:
-    from worker.launch import run_worker
+    from worker.gateway import run_worker
 
     from .parser import CliError
 

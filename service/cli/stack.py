@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import redis
 
-from worker.store import JobStore
+from worker.gateway import JobStore
 
 # The `symgs` command as this interpreter runs it (works without the console script on PATH; unlike `-m service.cli`
 # it keeps one `service.cli` module, whose CliError the handlers raise).
@@ -224,12 +224,12 @@ class LocalStack:
     ) -> Child:
         """Start a worker and wait for its first heartbeat. ``env`` overrides settings for this worker alone."""
         store = JobStore.from_url(self.redis_url)
-        before = store.live_workers(mode, 3600)
+        before = store.heartbeats.live(mode, 3600)
         argv = [*SYMGS, "worker", "--mode", mode, "--loglevel", "INFO"]
         name = f"worker-{mode}-{len(self.workers)}"
         child = self.spawn(name, argv, env=self.child_env(env), cwd=cwd, wrap=wrap)
         self.workers.append(child)
-        wait_until(child, lambda: store.live_workers(mode, 3600) > before, timeout, "send a heartbeat")
+        wait_until(child, lambda: store.heartbeats.live(mode, 3600) > before, timeout, "send a heartbeat")
         store.r.close()
         return child
 

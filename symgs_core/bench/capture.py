@@ -325,7 +325,7 @@ def cached_capture(
     """``train(folder, settings)`` saved in the folder ``cache`` under its ``capture_key``: trained on the first
     call, read from there on later ones (training takes minutes, and benchmarks of one capture should score one
     scene; a capture changed since is trained again)."""
-    from ..ply import save_scene
+    from ..export import save_scene
 
     settings = settings or TrainSettings()
     ply = cached_path(folder, cache, settings)

@@ -86,7 +86,7 @@ def stamp(splat_transform: str | None = None) -> dict[str, object]:
     """Commit, UTC date, machine and tool versions, as a JSON-ready dict."""
     return {
         "commit": commit(),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": machine(),
         "tools": tools(splat_transform),
     }

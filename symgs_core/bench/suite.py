@@ -61,16 +61,16 @@ def document(rows: list[BenchRow], scenes: list[Path], names: list[str], setting
 
 
 def write_charts(rows: list[BenchRow], input_bytes: dict[str, int], folder: Path) -> list[Path]:
-    from ..pictures import bench_charts
+    from . import charts
 
     folder.mkdir(parents=True, exist_ok=True)
     made = {
-        "rate_distortion.png": bench_charts.rate_distortion_overall_png(rows, input_bytes),
-        "speed_accuracy.png": bench_charts.speed_accuracy_overall_png(rows),
+        "rate_distortion.png": charts.rate_distortion_overall_png(rows, input_bytes),
+        "speed_accuracy.png": charts.speed_accuracy_overall_png(rows),
     }
     for scene in input_bytes:
-        made[f"rate_distortion_{scene}.png"] = bench_charts.rate_distortion_png(rows, scene)
-        made[f"speed_accuracy_{scene}.png"] = bench_charts.speed_accuracy_png(rows, scene)
+        made[f"rate_distortion_{scene}.png"] = charts.rate_distortion_png(rows, scene)
+        made[f"speed_accuracy_{scene}.png"] = charts.speed_accuracy_png(rows, scene)
     for name, png in made.items():
         (folder / name).write_bytes(png)
     return [folder / name for name in made]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..cameras import View
 from .colmap import COLMAP_MODELS, colmap_frames, colmap_model_dir, load_colmap, read_colmap_model
 from .images import load_frames, load_views, pixel_limit, read_frame, read_image, read_premultiplied, resize_image
 from .lens import Lens
@@ -24,7 +25,6 @@ from .posed import (
     Photograph,
     PosedFrame,
     Split,
-    View,
     check_background,
     composite,
 )

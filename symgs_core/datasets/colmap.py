@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..cameras import View
 from .images import image_size, load_views
 from .lens import Lens, posed_frame
 from .posed import (
     DatasetError,
     PosedFrame,
     Split,
-    View,
     check_background,
     finite,
     in_split,

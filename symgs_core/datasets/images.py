@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..cameras import Camera, View
 from .lens import UndistortionMaps, undistort_image, undistortion_maps
-from .posed import DatasetError, Photograph, PosedFrame, View, composite
+from .posed import DatasetError, Photograph, PosedFrame, composite
 
 _PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
 
@@ -170,8 +170,12 @@ def read_frame(
 
 def load_views(frames: list[PosedFrame], background: tuple[float, float, float], max_views: int | None = None,
                scale: float = 1.0) -> list[View]:  # fmt: skip
-    """``load_frames``, laid on ``background``."""
-    return [View(p.camera, p.on(background), p.name) for p in load_frames(frames, max_views, scale)]
+    """``load_frames``, laid on ``background``; every pixel is the object's (no scene tells them apart here)."""
+    views = []
+    for p in load_frames(frames, max_views, scale):
+        image = p.on(background)
+        views.append(View(p.camera, image, image.new_ones(image.shape[:2], dtype=torch.bool), p.name))
+    return views
 
 
 def _scaled(camera: Camera, scale: float) -> Camera:

@@ -24,14 +24,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..cameras import Camera, View
 from .images import image_size, load_views
 from .lens import Lens, posed_frame
 from .posed import (
     DatasetError,
     PosedFrame,
     Split,
-    View,
     check_background,
     finite,
     held_out,

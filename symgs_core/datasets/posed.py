@@ -47,15 +47,6 @@ class DatasetError(ValueError):
 
 
 @dataclass
-class View:
-    """One posed image: ``image`` [H, W, 3] float32 in [0, 1], the size of ``camera``."""
-
-    camera: Camera
-    image: Tensor
-    name: str
-
-
-@dataclass
 class Photograph:
     """One posed image before it is laid on a background, the size of ``camera``: ``colour`` [H, W, 3] float32
     premultiplied by ``alpha`` [H, W, 1] (None: an opaque image, which no background shows through)."""

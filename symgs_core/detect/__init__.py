@@ -1,4 +1,4 @@
-"""Symmetry detection: mirror planes of a Gaussian set and the membership of each side (DESIGN.md section 6)."""
+"""Symmetry detection: mirror planes of a Gaussian set and the membership of each side."""
 
 from __future__ import annotations
 

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from ..devices import HOST
+from ..zorder import AXIS_BITS, interleave
 from .clusters import Attributes
 from .compiled import compiled, compiled_parallel
 from .pairs import Axes
@@ -45,7 +46,6 @@ _ICP_SETTLED = 0.003  # ... and a stage ends once a step moves the plane less th
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
 _PARALLEL_QUERIES = 10_000
 _TRAITS = 7  # scaled attributes per Gaussian: RGB, opacity, three sorted log-scales
-_MORTON_BITS = 21  # per axis: three fit in 64 bits
 _MORTON_SPAN = 2.0  # the order covers coordinates within this many frame radii; beyond, it clamps
 _LN2 = math.log(2.0)
 _CLOSE = 0.9  # geometric score of a match close enough to judge whether attributes agree here ...
@@ -183,8 +183,8 @@ class Matcher:
         idx = self.chance_sample
         shares = []
         for _ in range(planes):
-            n = torch.randn(3, generator=gen, dtype=torch.float64, device=HOST)
-            n = torch.nn.functional.normalize(n, dim=0).numpy()
+            drawn = torch.randn(3, generator=gen, dtype=torch.float64, device=HOST)
+            n = torch.nn.functional.normalize(drawn, dim=0).numpy()
             offset = float(self.p[self.rank[int(torch.randint(self.p.shape[0], (1,), generator=gen, device=HOST))]] @ n)
             d = _distances(self.p, n, offset)
             matched, _ = self._matched(idx, d, n, d > 0)
@@ -480,27 +480,8 @@ def _distance_kernel(p, n, offset, out):  # noqa: ANN001, ANN202
 
 def _morton_order(p: np.ndarray) -> np.ndarray:
     """Indices [N] that sort points p [N, 3] (normalised frame) along a Morton (Z-order) curve: nearby points end
-    up mostly nearby in the order."""
-    code = np.empty(len(p), dtype=np.int64)
-    _morton_kernel(np.ascontiguousarray(p, dtype=np.float64), code)
-    return np.argsort(code)
-
-
-@compiled
-def _morton_kernel(p, code):  # noqa: ANN001, ANN202
-    """Morton codes [N] (int64, 63 bits) of points p [N, 3]: each coordinate cut into 2^_MORTON_BITS cells over
-    +-_MORTON_SPAN, the cells' bits interleaved (x lowest)."""
-    cells = 1 << _MORTON_BITS
+    up mostly nearby in the order. Each coordinate is cut into 2^AXIS_BITS cells over +-_MORTON_SPAN."""
+    cells = 1 << AXIS_BITS
     scale = cells / (2.0 * _MORTON_SPAN)
-    for r in range(p.shape[0]):
-        c = 0
-        for axis in range(3):
-            v = min(max(int((p[r, axis] + _MORTON_SPAN) * scale), 0), cells - 1)
-            # Spread the 21 bits of v to every third bit (magic masks of the standard bit-interleaving trick).
-            v = (v | (v << 32)) & 0x1F00000000FFFF
-            v = (v | (v << 16)) & 0x1F0000FF0000FF
-            v = (v | (v << 8)) & 0x100F00F00F00F00F
-            v = (v | (v << 4)) & 0x10C30C30C30C30C3
-            v = (v | (v << 2)) & 0x1249249249249249
-            c |= v << axis
-        code[r] = c
+    at = np.clip((np.asarray(p, dtype=np.float64) + _MORTON_SPAN) * scale, 0, cells - 1).astype(np.int64)
+    return np.argsort(interleave(at))

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..devices import HOST
-from ..mirror import Plane
+from ..mirror import Plane, canonical_sign
 from ..scene import GaussianScene
 from .clusters import Clusters, attributes, cluster
 from .components import spatial_components
@@ -228,6 +228,5 @@ def _same_plane(normal: Tensor, offset: float, other: tuple[Tensor, float], conf
 
 
 def _canonical(normal: Tensor, offset: float) -> tuple[Tensor, float]:
-    """The same plane with the normal's largest-magnitude component positive (as ``Plane.canonical``)."""
-    axis = int(normal.abs().argmax())
-    return (normal, offset) if normal[axis] >= 0 else (-normal, -offset)
+    """The same plane, written as ``Plane.canonical`` writes it (``mirror.canonical_sign``)."""
+    return (normal, offset) if canonical_sign(normal.tolist()) > 0 else (-normal, -offset)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -46,6 +47,22 @@ def export_scene(scene: GaussianScene, path: str | os.PathLike[str], **options: 
     return fmt
 
 
+def save_scene(scene: GaussianScene, path: str | os.PathLike[str], *, comments: tuple[str, ...] = ()) -> None:
+    """Write ``scene`` to ``path`` as a graphdeco PLY (``ply.ply_bytes``). A name another format owns (``.spz``,
+    ``.compressed.ply``, ...) is refused: those bytes would not be that format; ``export_scene`` writes it."""
+    from ..ply import ply_bytes
+    from .formats import by_path
+
+    try:
+        owner = by_path(path)
+    except ValueError:  # no format's extension (a temporary name, say): the caller's choice
+        owner = None
+    if owner is not None and owner.name != "ply":
+        raise ValueError(f"{Path(path).name} names a {owner.title} file; save_scene writes a graphdeco PLY, "
+                         "export_scene writes the format a name asks for")
+    Path(path).write_bytes(ply_bytes(scene, comments=comments))
+
+
 def import_scene(path: str | os.PathLike[str]) -> GaussianScene:
     """Read a scene written in any export format that has a reader (by extension)."""
     from .formats import by_path
@@ -62,4 +79,4 @@ def __getattr__(name: str) -> Any:
     return value
 
 
-__all__ = sorted([*_PUBLIC, "export_scene", "import_scene"])
+__all__ = sorted([*_PUBLIC, "export_scene", "import_scene", "save_scene"])

@@ -13,7 +13,7 @@ from ..mirror import Plane
 from ..report import LevelReport, Report
 from ..scene import GaussianScene
 from ..views import View, ViewSet
-from .charts import ChartPoint, job_points, rate_distortion_png, speed_accuracy_png
+from .charts import ChartPoint, PeerPoint, job_points, rate_distortion_png, speed_accuracy_png
 from .geometry import best_view, plane_box_polygon, project_polygon, scene_box, view_score
 from .renders import compare_png, difference_map, mirrors_png, picture_camera, render_view
 
@@ -37,10 +37,11 @@ def job_pictures(
     *,
     compare_views: int = 3,
     size: int = 256,
+    charts: bool = True,
 ) -> dict[str, bytes]:
     """PNG bytes by name: ``compare_0`` .. (the first ``compare_views`` evaluation views, uncompressed beside decoded
     with their difference), ``mirrors`` (the accepted planes over the input, from the training or evaluation camera
-    that shows them best), ``rate_distortion`` and ``speed_accuracy``. ``size`` is the longest side of a render in
+    that shows them best), and with ``charts`` those of ``job_charts``. ``size`` is the longest side of a render in
     pixels."""
     pictures: dict[str, bytes] = {}
     background = views.background
@@ -58,9 +59,14 @@ def job_pictures(
         cam = picture_camera(cameras[best_view(cameras, normals)], round(size * 1.5))
         image = render_view(source_scene, cam, background)
         pictures["mirrors"] = mirrors_png(image, cam, planes, scene_box(source_scene.means))
-    pictures["rate_distortion"] = rate_distortion_png(report)
-    pictures["speed_accuracy"] = speed_accuracy_png(report)
-    return pictures
+    return {**pictures, **job_charts(report)} if charts else pictures
+
+
+def job_charts(report: Report, peers: Sequence[PeerPoint] = ()) -> dict[str, bytes]:
+    """PNG bytes by name of the charts drawn from the report alone: ``rate_distortion`` and ``speed_accuracy``,
+    with ``peers`` (other formats on the same upload) beside the job's own points."""
+    return {"rate_distortion": rate_distortion_png(report, peers=peers),
+            "speed_accuracy": speed_accuracy_png(report, peers=peers)}  # fmt: skip
 
 
 __all__ = [
@@ -69,6 +75,7 @@ __all__ = [
     "best_view",
     "compare_png",
     "difference_map",
+    "job_charts",
     "job_pictures",
     "job_points",
     "mirrors_png",

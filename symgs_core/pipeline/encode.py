@@ -25,7 +25,6 @@ from ..codec.registry import ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..metrics import mse_to_psnr, psnr_to_mse
-from ..mirror import Plane
 from ..report import CodecReport, StageReport
 from ..views import View, evaluate
 from .budget import Choice, RateDistortion, extent_of
@@ -42,11 +41,10 @@ _CLOSE = 0.8  # a passing archive that measures at least this share of the allow
 
 def write_archive(state: LevelState, meta: dict, codec: str | ArchiveCodec = "lossless") -> bytes:
     """The archive of ``state`` in coding order, written by ``codec`` (an archive codec or a registered name)."""
-    planes = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
     stored, bits = state.stored.detach().to(HOST), state.bits.to(HOST)  # the entropy coders run on the host
     cells = grid_cells(archive_codec(codec).sections["means"], stored.means.numpy())
     perm = coding_order(stored, bits, cells)
-    return encode_archive(ArchiveContents(stored.select(perm), planes, bits[perm], meta), codec=codec)
+    return encode_archive(ArchiveContents(stored.select(perm), state.planes, bits[perm], meta), codec=codec)
 
 
 def canonical(state: LevelState) -> LevelState:

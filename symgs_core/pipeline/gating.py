@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from ..devices import HOST
-from ..mirror import reflect
+from ..mirror import Plane, reflect
 from ..scene import GaussianScene
 from ..sh import C0
 
@@ -25,17 +25,15 @@ def _base_rgb(scene: GaussianScene) -> Tensor:
     return (C0 * scene.sh_dc + 0.5).clamp(0.0, 1.0)
 
 
-def colour_mismatch(
-    scene: GaussianScene, normal: Tensor, offset: float, left: Tensor, right: Tensor
-) -> tuple[Tensor, Tensor]:
+def colour_mismatch(scene: GaussianScene, plane: Plane, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
     """Per right Gaussian [R], the largest RGB channel difference (view-independent colour) to the opacity-weighted
     mean of its nearest reflected left Gaussians; and per left Gaussian [L], the position in ``right`` of the right
     Gaussian nearest to its reflection."""
     if left.numel() == 0 or right.numel() == 0:
         return torch.zeros(right.numel(), device=HOST), torch.zeros(left.numel(), dtype=torch.long, device=HOST)
     with torch.no_grad():
-        mirrored = reflect(scene.select(left).detach().to("cpu"), normal.cpu(), offset)
-        dropped = scene.select(right).detach().to("cpu")
+        mirrored = reflect(scene.select(left).detach().to(HOST), plane.tensor(HOST)[0], plane.offset)
+        dropped = scene.select(right).detach().to(HOST)
     k = min(_NEIGHBOURS, left.numel())
     _, near = cKDTree(mirrored.means.numpy()).query(dropped.means.numpy(), k=k)
     near = torch.from_numpy(near).reshape(len(dropped), k)

@@ -11,24 +11,27 @@ many levels it gets, and a scene without symmetry keeps the plain codec's archiv
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ..cameras import scene_bounds
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig
-from ..files import partial_file
+from ..devices import HOST
 from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate
+from .checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
+from .codec_fit import CodecFitted
+from .encode import Fitted, rate_model
 from .gating import colour_mismatch, gated
+from .job import Job, Reporter, grown
 from .optimize import halo, optimize_level
 from .state import LevelState
 
@@ -61,8 +64,7 @@ class Membership:
     """One way to apply a detected mirror: the plane, the Gaussians reflected (left) and dropped (right), and the
     colour-agreement gate that produced it (None: geometry alone)."""
 
-    normal: torch.Tensor  # [3]
-    offset: float
+    plane: Plane
     left: torch.Tensor  # [L] indices into the working set
     right: torch.Tensor  # [R]
     votes: float
@@ -70,7 +72,7 @@ class Membership:
     gate: float | None
 
 
-def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor,
+def consistent_bits(state: LevelState, plane: Plane, left: torch.Tensor,
                     right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """``left`` and ``right`` with the pairs whose earlier-level bits differ taken out.
 
@@ -82,7 +84,8 @@ def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left
     if state.bits.shape[1] == 0 or left.numel() == 0 or right.numel() == 0:
         return left, right
     with torch.no_grad():
-        mirrored = reflect(state.stored.select(left).detach().to("cpu"), normal.cpu(), offset).means.numpy()
+        normal, _ = plane.tensor(HOST)
+        mirrored = reflect(state.stored.select(left).detach().to(HOST), normal, plane.offset).means.numpy()
     dropped = state.stored.means.detach()[right.to(state.stored.device)].cpu().numpy()
     _, nearest_left = cKDTree(mirrored).query(dropped, k=1)
     _, nearest_right = cKDTree(dropped).query(mirrored, k=1)
@@ -92,7 +95,7 @@ def consistent_bits(state: LevelState, normal: torch.Tensor, offset: float, left
 
 
 def apply_mirror(
-    state: LevelState, normal: torch.Tensor, offset: float, left: torch.Tensor, right: torch.Tensor
+    state: LevelState, plane: Plane, left: torch.Tensor, right: torch.Tensor
 ) -> LevelState:
     """The next level's state: ``right`` members dropped, ``left`` marked in a new bit column, the plane appended.
 
@@ -109,8 +112,8 @@ def apply_mirror(
     dtype = state.normals.dtype
     return LevelState(
         stored=state.stored.select(keep),
-        normals=torch.cat([state.normals, normal.to(device, dtype).reshape(1, 3)]),
-        offsets=torch.cat([state.offsets, torch.tensor([float(offset)], device=device, dtype=dtype)]),
+        normals=torch.cat([state.normals, plane.tensor(device)[0].to(dtype).reshape(1, 3)]),
+        offsets=torch.cat([state.offsets, torch.tensor([plane.offset], device=device, dtype=dtype)]),
         bits=torch.cat([state.bits[keep], is_left[keep][:, None]], dim=1),
     )
 
@@ -118,19 +121,18 @@ def apply_mirror(
 def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 - detect.Mirror
     """The detected membership, then ever stricter colour-agreement gates of it (``GATES``), loosest first; every
     one with its earlier-level bits made consistent (``consistent_bits``)."""
-    normal = torch.tensor(mirror.plane.normal, dtype=torch.float32, device=state.stored.device)
-    offset = float(mirror.plane.offset)
-    left, right = consistent_bits(state, normal, offset, mirror.left, mirror.right)
+    plane = mirror.plane
+    left, right = consistent_bits(state, plane, mirror.left, mirror.right)
     coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
-    base = Membership(normal, offset, left, right, float(mirror.votes), coverage, None)
-    mismatch, nearest = colour_mismatch(state.stored, normal, offset, left, right)
+    base = Membership(plane, left, right, float(mirror.votes), coverage, None)
+    mismatch, nearest = colour_mismatch(state.stored, plane, left, right)
     out = [base]
     for gate in GATES:
         gated_left, gated_right = gated(left, right, mismatch, nearest, gate)
         if gated_right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
             continue
         coverage = (gated_left.numel() + gated_right.numel()) / max(len(state.stored), 1)
-        out.append(Membership(normal, offset, gated_left, gated_right, base.votes, coverage, gate))
+        out.append(Membership(plane, gated_left, gated_right, base.votes, coverage, gate))
     return out
 
 
@@ -181,7 +183,7 @@ def plan_attempts(
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
     attempts = []
     for m in worth:
-        candidate = apply_mirror(state, m.normal, m.offset, m.left, m.right)
+        candidate = apply_mirror(state, m.plane, m.left, m.right)
         before = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
         predicted, settled = None, False
         if rate is not None:
@@ -203,7 +205,7 @@ def hopeless(psnr_before: float, floor: float) -> bool:
     return psnr_before < floor - TUNE_GAIN
 
 
-Judge = Callable[[LevelState, float], int]  # (state, its fitting PSNR) -> bytes of its archive at the floor
+Judge = Callable[[LevelState, float], Fitted]  # (state, its fitting PSNR) -> its archive at the floor
 
 
 def tune(
@@ -217,7 +219,7 @@ def tune(
     extent: float,
     spacing: float,
     steps: QuantSteps | None,
-    report,  # noqa: ANN001 - pipeline._Reporter
+    report: Reporter,
 ) -> tuple[LevelState, float, int]:
     """Fine-tune what ``membership`` changed in ``candidate`` (its left side and the neighbours of both sides, and
     the new plane) in stretches while they gain; returns the tuned state, its fitting PSNR and the steps run."""
@@ -280,70 +282,48 @@ def level_notes(records: list[LevelReport], gaussians: int, *, photographs: bool
     )
 
 
-def _save_checkpoint(path: Path, fingerprint: str, state: LevelState, records: list[LevelReport], done: bool,
-                     best_bytes: int) -> None:  # fmt: skip
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "fingerprint": fingerprint,
-        "stored": {k: v.detach().cpu() for k, v in state.stored.tensors().items()},
-        "normals": state.normals.detach().cpu(),
-        "offsets": state.offsets.detach().cpu(),
-        "bits": state.bits.cpu(),
-        "records": [asdict(r) for r in records],
-        "done": done,
-        "best_bytes": best_bytes,
-    }
-    # A temporary file of its own: two runs of one job may overlap (a worker whose lease lapsed while Redis
-    # restarted runs on until it notices), and a shared temporary name let one move the other's half-written file
-    # into place, or find it gone. Moved into place whole: a worker killed mid-write leaves the previous one intact.
-    with partial_file(path) as (out, tmp):
-        torch.save(payload, out)
-    os.replace(tmp, path)
+@dataclass(frozen=True)
+class LevelSearch:
+    """What the level loop starts from: the input, its camera sets, the ``floor`` every level holds on the fitting
+    views, the ``reference`` (the input's own fitting PSNR: +inf against renders of it, finite against
+    photographs), its ``extent`` (radius), the plain codec's ``plain_bytes`` and ``steps`` (which the fine-tunes
+    round to, straight-through, so that what they learn survives the codec; None: float32), and its ``rate`` model
+    (None: none)."""
+
+    source: GaussianScene
+    views: ViewSet
+    floor: float
+    reference: float
+    extent: float
+    plain_bytes: int
+    steps: QuantSteps | None
+    rate: Rate | None = None
 
 
-def _load_checkpoint(path: Path, fingerprint: str, device: torch.device):  # noqa: ANN202
-    if not path.exists():
-        return None
-    try:
-        payload = torch.load(path, map_location=device, weights_only=True)
-    except Exception:  # noqa: BLE001 - an unreadable checkpoint is recomputed, never trusted
-        return None
-    if payload.get("fingerprint") != fingerprint or "best_bytes" not in payload:
-        return None
-    state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
-    records = [LevelReport(**{**r, "normal": tuple(r["normal"])}) for r in payload["records"]]
-    return state, records, bool(payload["done"]), int(payload["best_bytes"])
+@dataclass(frozen=True)
+class LevelOutcome:
+    """The state the levels end on, its fitting PSNR, a record of every level tried, and the judged archive of the
+    last level accepted in this run (None: no level accepted, or the state was resumed from a checkpoint)."""
+
+    state: LevelState
+    psnr: float
+    records: list[LevelReport]
+    fitted: Fitted | None
 
 
 def run_levels(
-    source: GaussianScene,
-    views: ViewSet,
-    *,
-    config: CompressConfig,
-    floor: float,
-    reference: float,
-    extent: float,
-    judge: Judge,
-    plain_bytes: int,
-    rate: Rate | None = None,
-    steps: QuantSteps | None,
-    report,  # noqa: ANN001 - pipeline._Reporter
-    checkpoint: Path | None,
-    fingerprint: str,
-) -> tuple[LevelState, float, list[LevelReport]]:
+    search: LevelSearch, *, config: CompressConfig, judge: Judge, report: Reporter, checkpoint: Checkpoint | None
+) -> LevelOutcome:
     """Accept mirror levels while each makes the archive smaller (``judge``) at the floor than the best so far, the
-    plain codec's ``plain_bytes`` to begin with, skipping the fine-tune of memberships that ``rate`` predicts cannot
-    pay (``plan_attempts``); resume from ``checkpoint`` when its ``fingerprint`` (the job's inputs) matches. Returns
-    the state, its fitting PSNR and a record of every level tried.
-
-    ``reference``: the input's own fitting PSNR, +inf against renders of it, finite against photographs.
-    ``steps``: the plain codec's steps, which the fine-tunes round to (straight-through) so that what they learn
-    survives the codec (None: float32).
-    """
+    plain codec's to begin with, skipping the fine-tune of memberships that the rate model predicts cannot pay
+    (``plan_attempts``); resume from ``checkpoint`` when its fingerprint (the job's inputs) matches."""
     from ..detect import DetectConfig, detect
 
-    state, psnr, records, done, best_bytes = LevelState.plain(source), reference, [], False, plain_bytes
-    resumed = _load_checkpoint(checkpoint, fingerprint, source.device) if checkpoint is not None else None
+    source, views, floor, reference = search.source, search.views, search.floor, search.reference
+    records: list[LevelReport] = []
+    state, psnr, done, best_bytes = LevelState.plain(source), reference, False, search.plain_bytes
+    best_fit: Fitted | None = None
+    resumed = load_checkpoint(checkpoint, source.device) if checkpoint is not None else None
     if resumed is not None:
         state, records, done, best_bytes = resumed
         if state.normals.shape[0]:
@@ -354,25 +334,25 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        accepted = [Plane.from_tensor(n, g) for n, g in zip(state.normals, state.offsets)]
-        mirrors = detect(state.stored, detect_config, exclude=accepted)
+        mirrors = detect(state.stored, detect_config, exclude=state.planes)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
-        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=rate, best_bytes=best_bytes,
+        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,
                                  photographs=math.isfinite(reference))  # fmt: skip
         done = True
         for attempt in attempts:
             membership, psnr_before = attempt.membership, attempt.psnr_before
             t0 = time.perf_counter()
-            candidate = apply_mirror(state, membership.normal, membership.offset, membership.left, membership.right)
+            candidate = apply_mirror(state, membership.plane, membership.left, membership.right)
             skipped = not attempt.pays(floor, best_bytes)
             if skipped or attempt.settled:
                 tuned, psnr_after, run = candidate.detach(), psnr_before, 0
             else:
                 tuned, psnr_after, run = tune(state, candidate, membership, views, level=level, config=config,
-                                              extent=extent, spacing=spacing, steps=steps, report=report)  # fmt: skip
+                                              extent=search.extent, spacing=spacing, steps=search.steps,
+                                              report=report)  # fmt: skip
             report.timed("optimize", time.perf_counter() - t0)
-            archive_bytes = None
+            archive_bytes, judged = None, None
             if skipped:
                 accepted_now, reason = False, _unpaid(attempt, floor, best_bytes)
             elif psnr_after < floor:
@@ -380,7 +360,8 @@ def run_levels(
             else:
                 t1 = time.perf_counter()
                 report("levels", (level + 1) / config.max_levels, f"level {level}: encoding to compare", level)
-                archive_bytes = judge(tuned, psnr_after)
+                judged = judge(tuned, psnr_after)
+                archive_bytes = len(judged.archive)
                 report.timed("judge", time.perf_counter() - t1)
                 accepted_now = archive_bytes < best_bytes
                 reason = (f"the archive shrinks from {best_bytes:,} to {archive_bytes:,} bytes" if accepted_now else
@@ -399,9 +380,36 @@ def run_levels(
             ))  # fmt: skip
             if accepted_now:
                 assert archive_bytes is not None  # only a judged level is accepted
-                state, psnr, best_bytes, done = tuned, psnr_after, archive_bytes, False
+                state, psnr, best_bytes, best_fit, done = tuned, psnr_after, archive_bytes, judged, False
                 break
         if checkpoint is not None:
-            _save_checkpoint(checkpoint, fingerprint, state, records, done, best_bytes)
+            save_checkpoint(checkpoint, state, records, done, best_bytes)
     report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")
-    return state, psnr, records
+    return LevelOutcome(state, psnr, records, best_fit)
+
+
+@dataclass(frozen=True)
+class Levelled(CodecFitted):
+    """``levels``: the state the levels end on (no plane: the plain scene), its fitting PSNR, every level tried, and
+    its judged archive (None: the plain codec's, or a state resumed from a checkpoint, not judged in this run)."""
+
+    levels: LevelOutcome
+
+
+def levels(fitted: CodecFitted, job: Job) -> Levelled:
+    config, plain = job.config, fitted.plain
+    # Levels are judged by fitted archives: a preset that fits nothing keeps none.
+    max_levels = config.max_levels if config.use_mirrors and job.preset.fitted else 0
+    _, radius = scene_bounds(fitted.source.means.detach().cpu(), fitted.source.scales)
+    search = LevelSearch(
+        fitted.source, fitted.views, fitted.floor, fitted.reference, radius, len(plain.archive), plain.steps,
+        rate_model(plain, fitted.floor) if plain.rd is not None else None,
+    )
+    checkpoint = None
+    if job.checkpoint_dir is not None:
+        checkpoint = Checkpoint(job.checkpoint_dir / "levels.pt", fingerprint(fitted.source, config, job.images))
+    t0 = time.perf_counter()
+    outcome = run_levels(search, config=replace(config, max_levels=max_levels), judge=fitted.codec,
+                         report=job.reporter, checkpoint=checkpoint)  # fmt: skip
+    job.reporter.timed("levels", time.perf_counter() - t0)
+    return grown(fitted, Levelled, levels=outcome)

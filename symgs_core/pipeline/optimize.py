@@ -136,7 +136,8 @@ def optimize_level(
         if not order:
             order = list(range(len(views)))
             rng.shuffle(order)
-        cam, target, _ = views[order.pop()]
+        view = views[order.pop()]
+        cam, target = view.camera, view.image
         normals, offsets = planes()
         shown = fake_quantized(params, steps, extent) if steps is not None else params
         scene, _ = expand(GaussianScene(**shown), normals, offsets, state.bits, plan)

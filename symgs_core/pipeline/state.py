@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..mirror import expand
+from ..mirror import Plane, expand
 from ..scene import GaussianScene
 
 
@@ -30,6 +30,11 @@ class LevelState:
             torch.zeros(0, device=dev, dtype=dtype),
             torch.zeros(len(scene), 0, dtype=torch.bool, device=dev),
         )
+
+    @property
+    def planes(self) -> list[Plane]:
+        """The levels' planes (level 0 first) as the archive stores them: unit normals."""
+        return [Plane.from_tensor(n, g) for n, g in zip(self.normals, self.offsets, strict=True)]
 
     def expanded(self) -> GaussianScene:
         return expand(self.stored, self.normals, self.offsets, self.bits)[0]

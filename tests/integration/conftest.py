@@ -46,7 +46,7 @@ def stack() -> Iterator[LocalStack]:
 
 @pytest.fixture(scope="session")
 def scene_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     path = tmp_path_factory.mktemp("scenes") / "mirrored.ply"
@@ -124,7 +124,7 @@ def small_ply(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     """A 20-Gaussian scene: the header edits of the upload tests rely on its vertex count."""
     import torch
 
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     path = tmp_path_factory.mktemp("small") / "small.ply"

@@ -200,7 +200,7 @@ _LEVEL_MOVING = """() => {
 
 
 def test_job_page_cancels_a_running_job(stack, browser: Browser, tmp_path: Path) -> None:  # noqa: ANN001
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     # Near twins, not exact ones: their mirror costs the codec enough to be fine-tuned (exact twins are judged as
@@ -504,7 +504,7 @@ def test_job_page_of_a_job_deleted_while_it_is_open(stack, browser: Browser, sce
 def test_a_jobs_notes_are_shown_above_its_metrics(stack, browser: Browser, tmp_path: Path) -> None:  # noqa: ANN001
     """A scene whose halves are two reconstructions, sent without photographs: its mirror does not pay, and the job
     page says what might make it (a job without notes shows none: see the key test)."""
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     scene = tmp_path / "capture.ply"

@@ -1,12 +1,12 @@
 """Jobs survive faults: a worker killed mid-job and Redis restarted (SIGKILL, with its append-only file) while a
 client submits and polls; every accepted job ends succeeded, with the same result. The long version is
-``benchmarks/fault_jobs.py`` (figures in BENCHMARKS.md)."""
+``tests/tools/fault_jobs.py`` (figures in BENCHMARKS.md)."""
 
 from __future__ import annotations
 
 import pytest
 
-from benchmarks.fault_jobs import fault_stack, run, scene_bytes
+from tests.tools.fault_jobs import fault_stack, run, scene_bytes
 
 pytestmark = pytest.mark.integration
 

@@ -13,12 +13,13 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from service.api.auth import owner_of
 from service.cli.stack import Child, LocalStack
 from tests.integration.conftest import KEY_A, TINY, client_for, finished, submit, wait_for
 from tests.integration.netns import NetworkUnavailable, private_network
 from tests.integration.s3_hosts import host_folder
 from tests.s3_server import BUCKET, start_s3_server
-from worker.store import JobStore, P, owner_of
+from worker.store import JobStore, P
 
 PREFIX = "multihost"
 

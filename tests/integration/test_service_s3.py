@@ -13,11 +13,11 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.api.auth import owner_of
 from service.cli.stack import LocalStack
 from tests.integration.conftest import KEY_A, KEY_B, TINY, client_for, finished, submit, wait_for
 from tests.integration.s3_hosts import PREFIX, host_folder
 from tests.s3_server import BUCKET, S3Server, start_s3_server
-from worker.store import owner_of
 
 
 @pytest.fixture(scope="module")

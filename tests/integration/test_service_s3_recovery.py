@@ -13,10 +13,11 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.api.auth import owner_of
 from tests.integration.conftest import KEY_A, TINY, client_for, finished, read_sse, submit, wait_for
 from tests.integration.s3_hosts import S3Service, s3_service
 from tests.s3_server import BUCKET
-from worker.store import JobStore, owner_of
+from worker.store import JobStore
 
 # moto lists every unfinished upload as begun in 2010, so each sweep would take a live one for a dead process's and
 # abort it: these workers sweep once, as they start.
@@ -35,7 +36,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Service]:
 
 @pytest.fixture(scope="module")
 def large_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
     from symgs_core.synthetic import synthetic_scene
 
     path = tmp_path_factory.mktemp("large") / "large.ply"
@@ -131,7 +132,7 @@ def test_a_kill_while_results_are_written_serves_no_part_of_a_file_and_deletes_e
             assert answer.status_code == 409 and answer.json()["error"]["code"] == "not_ready", answer.text
 
         store = JobStore.from_url(service.stack.redis_url)
-        while store.lease_held(job["id"]):  # expired, the first sweep of the next worker takes the job over
+        while store.leases.held(job["id"]):  # expired, the first sweep of the next worker takes the job over
             time.sleep(0.1)
         service.start_worker("worker-3", env=SWEEP_ONCE)
         done = wait_for(api, job["id"], finished, timeout=180)

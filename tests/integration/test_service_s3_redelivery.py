@@ -13,13 +13,13 @@ import httpx
 import pytest
 import redis
 
+from service.api.auth import owner_of
 from service.cli.stack import Child
 from tests.integration.conftest import KEY_A, TINY, client_for, finished, read_sse, submit, wait_for
 from tests.integration.s3_hosts import S3Service, s3_service
 from tests.s3_server import BUCKET
 from worker.celery_app import COMPRESS_TASK, make_celery
 from worker.settings import Settings
-from worker.store import owner_of
 
 
 @pytest.fixture(scope="module")

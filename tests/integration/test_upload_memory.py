@@ -6,10 +6,10 @@ from collections.abc import Iterator
 
 import pytest
 
+from service.api.auth import owner_of
 from service.cli.stack import LocalStack
 from tests.upload_stream import upload
 from worker.storage import DirectoryStorage
-from worker.store import owner_of
 
 SCENE_BYTES = 200_000_000
 MAX_GROWTH_MIB = 48  # a few buffers of the stream; holding the upload would take 190 MiB

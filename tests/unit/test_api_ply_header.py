@@ -10,7 +10,8 @@ import torch
 
 from service.api.errors import ApiError
 from service.api.submission import check_scene
-from symgs_core.ply import PlyError, read_scene, save_scene
+from symgs_core.export import save_scene
+from symgs_core.ply import PlyError, read_scene
 from symgs_core.scene import GaussianScene
 
 

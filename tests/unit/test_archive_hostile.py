@@ -23,7 +23,6 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from benchmarks.fuzz_archive import claiming
 from symgs_core.codec import (
     MAGIC,
     ArchiveContents,
@@ -37,6 +36,7 @@ from symgs_core.codec.archive import decode_memory
 from symgs_core.codec.floats import FLOAT32
 from symgs_core.codec.masks import write_varints
 from symgs_core.mirror import Plane
+from tests.tools.fuzz_archive import claiming
 from tests.unit.test_archive import random_contents
 
 QUICK = settings(max_examples=200, deadline=timedelta(seconds=2), suppress_health_check=[HealthCheck.too_slow])

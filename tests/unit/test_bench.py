@@ -19,8 +19,8 @@ from symgs_core.bench.half_ply import EXTENSION, HalfPlyError, read_half_ply, wr
 from symgs_core.bench.rows import REQUIRED, SCHEMA, TOLERANCE_DB, BenchRow, claims
 from symgs_core.bench.run import OURS, BenchSettings, bench_scene, equal_fidelity, next_floor, other_targets
 from symgs_core.config import CompressConfig, budget_for_floor
+from symgs_core.export import save_scene
 from symgs_core.pipeline import compress, decompress
-from symgs_core.ply import save_scene
 from symgs_core.synthetic import synthetic_scene
 
 

@@ -13,12 +13,14 @@ from symgs_core.bench import splat_transform
 from symgs_core.bench.peers import PEERS, run_peers
 from symgs_core.bench.run import OURS_PLAIN, BenchSettings, bench_scene
 from symgs_core.config import CompressConfig
+from symgs_core.export import save_scene
+from symgs_core.pictures import job_charts
 from symgs_core.pipeline import compress
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.report import Report
 from symgs_core.synthetic import synthetic_scene
 from tests.unit.test_pictures import png
-from worker.peers import peer_charts
+from worker.peers import upload_peers
 
 TINY = {"iterations": 2, "max_levels": 1, "train_views": 2, "fit_views": 2, "eval_views": 2, "resolution": 24,
         "eval_resolution": 24, "device": "cpu"}  # fmt: skip
@@ -75,14 +77,16 @@ def test_spz_v3_carries_our_size_at_its_psnr(exe: str, ply: Path, tmp_path: Path
 
 
 def test_a_job_draws_the_peers_in_its_charts(exe: str, ply: Path, report: Report, tmp_path: Path) -> None:
-    charts = peer_charts(ply, None, report, seconds=120, work=tmp_path)
-    assert set(charts) == {"rate_distortion", "speed_accuracy"}
+    peers = upload_peers(ply, None, report, seconds=120, work=tmp_path)
+    assert peers
+    charts = job_charts(report, peers=peers)
+    assert set(charts) == {"rate_distortion", "speed_accuracy"} and charts != job_charts(report)
     assert all(png(data).size == (820, 420) for data in charts.values())
-    assert peer_charts(ply, None, report, seconds=0, work=tmp_path) == {}  # turned off
+    assert upload_peers(ply, None, report, seconds=0, work=tmp_path) == []  # turned off
 
 
 def test_without_the_tool_a_job_keeps_its_own_charts(ply: Path, report: Report, tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
     monkeypatch.setenv("SYMGS_NPM_CACHE", str(tmp_path / "no-npm"))
     monkeypatch.delenv("SPLAT_TRANSFORM", raising=False)
-    assert peer_charts(ply, None, report, seconds=60, work=tmp_path) == {}
+    assert upload_peers(ply, None, report, seconds=60, work=tmp_path) == []

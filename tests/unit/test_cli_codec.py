@@ -12,8 +12,9 @@ import pytest
 
 from service.cli import main
 from symgs_core.bench.photos import photographed
+from symgs_core.export import save_scene
 from symgs_core.export.formats import EXPORTS
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.synthetic import synthetic_scene
 
 FAST = ["--iterations", "5", "--resolution", "48", "--eval-resolution", "48", "--train-views", "4", "--fit-views", "2",
@@ -182,10 +183,10 @@ def test_an_output_in_a_folder_one_cannot_write_exits_2(scene_file, tmp_path, ca
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--views", "0"], "--views must be in 1..1000, got 0"),
-        (["--views", "-3"], "--views must be in 1..1000, got -3"),
-        (["--resolution", "100000"], "--resolution must be in 16..4096, got 100000"),
-        (["--resolution", "8"], "--resolution must be in 16..4096, got 8"),
+        (["--views", "0"], "--views must be in 1..256, got 0"),
+        (["--views", "-3"], "--views must be in 1..256, got -3"),
+        (["--resolution", "100000"], "--resolution must be in 16..2048, got 100000"),
+        (["--resolution", "8"], "--resolution must be in 16..2048, got 8"),
         (["--seed", "99999999999999999999999"], "--seed must be in 0..2147483647, got 99999999999999999999999"),
         (["--seed", "-1"], "--seed must be in 0..2147483647, got -1"),
     ],

@@ -14,7 +14,7 @@ from PIL import Image
 
 from service.cli import main
 from symgs_core.cameras import orbit_cameras, scene_bounds
-from symgs_core.ply import save_scene
+from symgs_core.export import save_scene
 from symgs_core.render import render
 from symgs_core.scene import GaussianScene
 from tests.conftest import PROJECT_ROOT, shared_file

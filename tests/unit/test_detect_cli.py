@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.cli import main
-from symgs_core.ply import save_scene
+from symgs_core.export import save_scene
 from symgs_core.synthetic import synthetic_scene
 
 

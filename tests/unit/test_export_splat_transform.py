@@ -13,8 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from symgs_core.export import compressed_ply_order, read_compressed_ply, read_spz, write_compressed_ply, write_spz
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.export import (
+    compressed_ply_order,
+    read_compressed_ply,
+    read_spz,
+    save_scene,
+    write_compressed_ply,
+    write_spz,
+)
+from symgs_core.ply import load_scene
 from tests.npm_tools import SPLAT_TRANSFORM_SPZ, convert
 from tests.npm_tools import splat_transform as installed_splat_transform
 from tests.unit.test_export import EDGE_SCENES, assert_within_spz_precision, edge_scene, same_rotation, scene_for_export

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from symgs_core.export import read_glb, read_sog, write_glb, write_sog
+from symgs_core.export import read_glb, read_sog, save_scene, write_glb, write_sog
 from symgs_core.export.sog import save_sog_folder
-from symgs_core.ply import load_scene, save_scene
+from symgs_core.ply import load_scene
 from symgs_core.scene import GaussianScene
 from symgs_core.synthetic import synthetic_scene
 from tests.npm_tools import GLTF_VALIDATOR, convert, npm_package, splat_transform

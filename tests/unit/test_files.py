@@ -12,7 +12,7 @@ import torch
 from service.cli.parser import main
 from symgs_core.codec import ArchiveContents, encode_archive
 from symgs_core.files import create_exclusive, whole_file
-from symgs_core.pipeline.levels import _load_checkpoint, _save_checkpoint
+from symgs_core.pipeline.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from symgs_core.pipeline.state import LevelState
 from symgs_core.synthetic import synthetic_scene
 
@@ -75,7 +75,7 @@ def test_two_runs_saving_one_checkpoint_at_once_never_fail(tmp_path: Path) -> No
     def save(times: int) -> None:
         try:
             for _ in range(times):
-                _save_checkpoint(path, "job", state, [], False, 123)
+                save_checkpoint(Checkpoint(path, "job"), state, [], False, 123)
         except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
             errors.append(exc)
 
@@ -85,5 +85,5 @@ def test_two_runs_saving_one_checkpoint_at_once_never_fail(tmp_path: Path) -> No
     for run in runs:
         run.join()
     assert errors == []
-    assert _load_checkpoint(path, "job", torch.device("cpu")) is not None
+    assert load_checkpoint(Checkpoint(path, "job"), torch.device("cpu")) is not None
     assert [p.name for p in path.parent.iterdir()] == ["levels.pt"]

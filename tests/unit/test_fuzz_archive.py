@@ -1,9 +1,9 @@
-"""A short run of the archive fuzzer (``benchmarks/fuzz_archive.py``; BENCHMARKS.md has the long one): every
+"""A short run of the archive fuzzer (``tests/tools/fuzz_archive.py``; BENCHMARKS.md has the long one): every
 mutant, raw or re-framed with valid checksums, is refused cleanly or decodes to a finite scene."""
 
 from __future__ import annotations
 
-from benchmarks.fuzz_archive import classify, fuzz, generated_seeds, mutant
+from tests.tools.fuzz_archive import classify, fuzz, generated_seeds, mutant
 
 
 def test_mutants_are_refused_or_finite() -> None:

@@ -12,10 +12,21 @@ from pydantic import BaseModel
 
 import api_schemas
 from api_schemas import JobParams
+from service.cli.bench import BENCH_SETTINGS
 from service.cli.codec import config_from_args
-from service.cli.parser import build_parser
+from service.cli.job_options import job_overrides
+from service.cli.parser import CliError, build_parser
 from symgs_core import report as core
-from symgs_core.config import DEFAULT_PRESET, PRESET_NAMES, PRESETS, CompressConfig, budget_for_floor, floor_for_budget
+from symgs_core.config import (
+    DEFAULT_PRESET,
+    JOB_SETTINGS,
+    PRESET_NAMES,
+    PRESETS,
+    CompressConfig,
+    Setting,
+    budget_for_floor,
+    floor_for_budget,
+)
 
 from ._samples import sample_report
 
@@ -53,6 +64,61 @@ def test_one_preset_list() -> None:
     compress = next(a for a in build_parser()._subparsers._group_actions[0].choices["compress"]._actions  # noqa: SLF001
                     if a.dest == "preset")  # fmt: skip
     assert tuple(compress.choices) == PRESET_NAMES and compress.default == DEFAULT_PRESET
+
+
+def _options(command: str) -> dict[str, typing.Any]:
+    """The options of a ``symgs`` command by destination."""
+    parser = build_parser()._subparsers._group_actions[0].choices[command]  # noqa: SLF001
+    return {a.dest: a for a in parser._actions}  # noqa: SLF001
+
+
+def _taken(setting: Setting, value: float) -> dict[str, bool]:
+    """Whether each door takes ``value`` for ``setting``."""
+    doors = {}
+    for door, attempt in (
+        ("python", lambda: CompressConfig.for_preset(**{setting.name: value})),
+        ("http", lambda: CompressConfig.for_preset(**JobParams(**{setting.name: value}).pipeline_overrides())),
+        ("compress", lambda: config_from_args(build_parser().parse_args(
+            ["compress", "s.ply", "-o", "o", setting.option, str(value)]))),
+        ("bench", lambda: CompressConfig.for_preset(**job_overrides(build_parser().parse_args(
+            ["bench", "s.ply", "--out", "o", setting.option, str(value)]), BENCH_SETTINGS))),
+    ):  # fmt: skip
+        if door == "bench" and setting.name not in BENCH_SETTINGS:
+            continue
+        try:
+            attempt()
+            doors[door] = True
+        except (ValueError, CliError):  # pydantic's ValidationError is a ValueError
+            doors[door] = False
+    return doors
+
+
+def test_every_door_takes_the_one_table_of_settings() -> None:
+    """``CompressConfig``, ``JobParams`` and the options of `symgs compress` and `symgs bench` are made from
+    ``JOB_SETTINGS``: the same names, the preset's value where a setting is left out, the same help, and the same
+    bounds (a value at a bound is taken by every door, one past it by none)."""
+    names = [s.name for s in JOB_SETTINGS]
+    assert set(names) <= {f.name for f in dataclasses.fields(CompressConfig)}
+    assert list(JobParams.model_fields) == ["preset", *names, "device"]
+    compress, bench = _options("compress"), _options("bench")
+    assert set(BENCH_SETTINGS) <= set(names) and not {*names} - {*BENCH_SETTINGS} & set(bench)
+    for setting in JOB_SETTINGS:
+        field = JobParams.model_fields[setting.name]
+        assert field.default is None and field.description == setting.help
+        for command in (compress, bench) if setting.name in BENCH_SETTINGS else (compress,):
+            option = command[setting.name]
+            assert option.option_strings == [setting.option] and option.default is None
+            assert option.help == setting.help
+        if setting.kind is bool:  # a flag on the command line, which turns the setting off
+            via_cli = config_from_args(build_parser().parse_args(["compress", "s.ply", "-o", "o", setting.option]))
+            via_http = CompressConfig.for_preset(**JobParams(**{setting.name: False}).pipeline_overrides())
+            assert getattr(via_cli, setting.name) is getattr(via_http, setting.name) is False
+            continue
+        assert setting.low is not None and setting.high is not None
+        for value, held in ((setting.low, True), (setting.high, True), (setting.low - 1, False),
+                            (setting.high + 1, False)):  # fmt: skip
+            doors = _taken(setting, value)
+            assert set(doors.values()) == {held}, (setting.name, value, doors)
 
 
 def _fields_of(annotation: typing.Any) -> type | None:

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from symgs_core.codec import decode_archive, expand_archive
 from symgs_core.codec.steps import QuantSteps
-from symgs_core.mirror import reflect
+from symgs_core.mirror import Plane, reflect
 from symgs_core.pipeline.encode import write_archive
 from symgs_core.pipeline.levels import apply_mirror, consistent_bits
 from symgs_core.pipeline.optimize import fake_quantized, halo, optimize_level
@@ -54,21 +54,21 @@ def _nested() -> tuple[LevelState, torch.Tensor, torch.Tensor]:
 def test_nested_levels_decode_gaussian_by_gaussian() -> None:
     state, left, right = _nested()
     whole = state.expanded()
-    fixed_left, fixed_right = consistent_bits(state, Y_PLANE, 0.0, left, right)
+    fixed_left, fixed_right = consistent_bits(state, Plane((0.0, 1.0, 0.0), 0.0), left, right)
     assert 0 < fixed_right.numel() < right.numel()  # some pairs disagree on level 0, some agree
-    mirrored = apply_mirror(state, Y_PLANE, 0.0, fixed_left, fixed_right)
+    mirrored = apply_mirror(state, Plane((0.0, 1.0, 0.0), 0.0), fixed_left, fixed_right)
     decoded = expand_archive(decode_archive(write_archive(mirrored, {})))
     assert len(mirrored.stored) < len(state.stored)
     assert _same_gaussians(decoded, whole)
     # Without the consistency a dropped Gaussian's level-0 copy is lost, or its stand-in's is made for nothing.
-    careless = apply_mirror(state, Y_PLANE, 0.0, left, right)
+    careless = apply_mirror(state, Plane((0.0, 1.0, 0.0), 0.0), left, right)
     assert not _same_gaussians(expand_archive(decode_archive(write_archive(careless, {}))), whole)
 
 
 def test_without_earlier_levels_the_membership_is_kept_whole() -> None:
     state, left, right = _nested()
     plain = LevelState.plain(state.stored)
-    assert consistent_bits(plain, Y_PLANE, 0.0, left, right) == (left, right)
+    assert consistent_bits(plain, Plane((0.0, 1.0, 0.0), 0.0), left, right) == (left, right)
 
 
 def test_the_fine_tune_leaves_what_it_may_not_train_bit_exact() -> None:

@@ -1,4 +1,4 @@
-"""Reflection of a Gaussian set across a plane (DESIGN.md section 5), against exact oracles."""
+"""Reflection of a Gaussian set across a plane (``symgs_core/mirror.py`` states the formulas), against exact oracles."""
 
 from __future__ import annotations
 

@@ -17,6 +17,7 @@ from PIL import Image
 
 from service.cli import main
 from symgs_core.cameras import Camera
+from symgs_core.export import save_scene
 from symgs_core.mirror import Plane
 from symgs_core.pictures import (
     best_view,
@@ -34,7 +35,6 @@ from symgs_core.pictures import (
 )
 from symgs_core.pictures.palette import LEVEL_COLOURS, level_colour
 from symgs_core.pictures.renders import image_psnr
-from symgs_core.ply import save_scene
 from symgs_core.report import Fidelity, GaussianCounts, LevelReport, Report, StageReport
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import self_supervised_views

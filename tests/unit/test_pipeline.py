@@ -16,10 +16,12 @@ from symgs_core.bench.photos import photographed
 from symgs_core.config import CompressConfig
 from symgs_core.detect import DetectConfig, detect
 from symgs_core.pipeline import compress, decompress
-from symgs_core.pipeline.compress import _Reporter
-from symgs_core.pipeline.levels import SETTLED_COST, memberships, run_levels
+from symgs_core.pipeline.encode import Fitted
+from symgs_core.pipeline.job import Reporter
+from symgs_core.pipeline.levels import SETTLED_COST, LevelSearch, memberships, run_levels
 from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
+from symgs_core.scene import GaussianScene
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import dataset_views, evaluate, self_supervised_views
 
@@ -28,6 +30,17 @@ FAST = CompressConfig.for_preset(
     "lossless", psnr_budget=0.5, iterations=10, train_views=4, fit_views=2, eval_views=2, resolution=64,
     eval_resolution=64, max_levels=2, pictures=False,
 )
+
+
+def _archive_of(size: int) -> Fitted:
+    """A judged archive of ``size`` bytes, for a judge that prices levels without encoding them."""
+    return Fitted(LevelState.plain(GaussianScene.empty(0)), bytes(size), math.inf, None)
+
+
+def _levels(scene, views, config, judge, *, floor, reference=math.inf, rate=None):  # noqa: ANN001, ANN202
+    search = LevelSearch(scene, views, floor, reference, 1.0, 10_000, None, rate)
+    outcome = run_levels(search, config=config, judge=judge, report=Reporter(None, None), checkpoint=None)
+    return outcome.state, outcome.psnr, outcome.records
 
 
 @pytest.fixture(scope="module")
@@ -108,9 +121,8 @@ def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
     judged = []
 
     def run(bytes_of):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
-                          judge=lambda st, p: judged.append(len(st.stored)) or bytes_of(st), plain_bytes=10_000,
-                          steps=None, report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: judged.append(len(st.stored)) or _archive_of(bytes_of(st)),
+                       floor=30.0)
 
     state, psnr, records = run(lambda st: 10_000)  # no smaller than the plain codec's
     assert judged and state.normals.shape[0] == 0 and math.isinf(psnr)
@@ -130,10 +142,8 @@ def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_j
     judged, priced = [], []
 
     def run(ratio):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=30.0, reference=math.inf, extent=1.0,
-                          judge=lambda st, p: judged.append(p) or 9_000, plain_bytes=10_000,
-                          rate=lambda before, after: priced.append((before, after)) or ratio, steps=None,
-                          report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: judged.append(p) or _archive_of(9_000), floor=30.0,
+                       rate=lambda before, after: priced.append((before, after)) or ratio)
 
     state, _, records = run(3.0)  # a third of the scene dropped, three times the bytes per Gaussian: no
     assert priced and all(math.isinf(before) for before, _ in priced)
@@ -153,9 +163,8 @@ def test_a_membership_that_costs_the_codec_almost_nothing_is_judged_without_a_fi
     config = replace(FAST, max_levels=1, iterations=4)
 
     def run(cost, reference=math.inf):  # noqa: ANN001, ANN202
-        return run_levels(scene, views, config=config, floor=20.0, reference=reference, extent=1.0,
-                          judge=lambda st, p: 9_000, plain_bytes=10_000, rate=lambda before, after: 1.0 + cost,
-                          steps=None, report=_Reporter(None, None), checkpoint=None, fingerprint="x")  # fmt: skip
+        return _levels(scene, views, config, lambda st, p: _archive_of(9_000), floor=20.0, reference=reference,
+                       rate=lambda before, after: 1.0 + cost)
 
     _, _, records = run(SETTLED_COST / 2)
     assert records[0].accepted and records[0].iterations == 0
@@ -262,7 +271,7 @@ def test_a_job_changes_no_process_wide_state(symmetric):
 
 
 def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None:  # noqa: ANN001
-    from symgs_core.pipeline.compress import _fingerprint
+    from symgs_core.pipeline.checkpoint import fingerprint
 
     scene, config = synthetic_scene("global", n=64, seed=1).scene, CompressConfig.for_preset()
     here, there = tmp_path / "host_a" / "data", tmp_path / "host_b" / "elsewhere"
@@ -270,9 +279,9 @@ def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None
         (root / "images").mkdir(parents=True)
         (root / "images" / "r_0.png").write_bytes(b"\x89PNG pixels")
         (root / "transforms_train.json").write_text('{"frames": []}')
-    assert _fingerprint(scene, config, here) == _fingerprint(scene, config, there)
+    assert fingerprint(scene, config, here) == fingerprint(scene, config, there)
     (there / "images" / "r_0.png").write_bytes(b"\x89PNG other pixels")
-    assert _fingerprint(scene, config, here) != _fingerprint(scene, config, there)
+    assert fingerprint(scene, config, here) != fingerprint(scene, config, there)
 
 
 def test_the_fast_preset_encodes_once_at_fixed_steps_and_reports_what_it_measured() -> None:
@@ -320,8 +329,8 @@ def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
     tiny = scene.with_(means=scene.means * 1e-6, scales=scene.scales + math.log(1e-6))
     sets = [self_supervised_views(s, train=0, fit=3, eval=0, resolution=32, eval_resolution=32,
                                   background=torch.zeros(3)) for s in (scene, tiny)]  # fmt: skip
-    for (_, target, _), (_, tiny_target, _) in zip(sets[0].fit, sets[1].fit):
-        assert target.max() > 0.1 and torch.allclose(tiny_target, target, atol=1e-3)
+    for view, tiny_view in zip(sets[0].fit, sets[1].fit):
+        assert view.image.max() > 0.1 and torch.allclose(tiny_view.image, view.image, atol=1e-3)
     config = CompressConfig.for_preset("balanced", fit_views=3, eval_views=2, eval_resolution=32, max_levels=0,
                                        device="cpu", pictures=False)  # fmt: skip
     at_size, small = (compress(s, config=config).report for s in (scene, tiny))
@@ -381,10 +390,10 @@ def test_photographs_laid_on_another_background_are_those_read_on_it(tmp_path, m
     for ours, theirs, before in zip((laid.train, laid.fit, laid.eval), (direct.train, direct.fit, direct.eval),
                                     (black.train, black.fit, black.eval), strict=True):  # fmt: skip
         assert len(ours) == len(theirs) > 0
-        for (camera, image, mask), (their_camera, their_image, their_mask) in zip(ours, theirs, strict=True):
-            assert torch.equal(image, their_image) and torch.equal(mask, their_mask)
-            assert torch.equal(camera.R, their_camera.R) and torch.equal(camera.t, their_camera.t)
-            assert camera.width == their_camera.width == 32
+        for view, their in zip(ours, theirs, strict=True):
+            assert torch.equal(view.image, their.image) and torch.equal(view.mask, their.mask)
+            assert torch.equal(view.camera.R, their.camera.R) and torch.equal(view.camera.t, their.camera.t)
+            assert view.camera.width == their.camera.width == 32
         # Where the photographs are transparent the new colour shows; opaque photographs keep their own backdrop.
         assert any(not torch.equal(a.image, b.image) for a, b in zip(ours, before, strict=True)) == alpha
 
@@ -418,12 +427,13 @@ def test_photographs_of_one_flat_colour_are_refused_as_such():
     can be beaten there, and the message says what they show rather than an infinite PSNR."""
     from types import SimpleNamespace
 
+    from symgs_core.cameras import View
     from symgs_core.datasets import DatasetError
     from symgs_core.views import check_photographs
 
     mask = torch.zeros(8, 8, dtype=torch.bool)
     mask[2:6, 2:6] = True
-    views = [(None, torch.full((8, 8, 3), 0.5), mask)] * 2
+    views = [View(None, torch.full((8, 8, 3), 0.5), mask)] * 2
     with pytest.raises(DatasetError, match="one flat colour") as refused:
         check_photographs(SimpleNamespace(psnr_object=60.0), views)
     assert refused.value.code == "images_mismatch" and "inf" not in str(refused.value)
@@ -457,7 +467,7 @@ def test_a_scene_in_memory_is_refused_as_its_file_would_be(attribute, index, val
 def test_a_scene_in_memory_is_repaired_and_converted_as_its_file_would_be(tmp_path):
     """An infinite opacity is clamped as the reader clamps it (the caller's scene untouched), and float64 or float16
     attributes are taken as float32, as a PLY's double properties are: the archives are those of the scene's file."""
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
 
     scene = synthetic_scene("global", n=200, seed=4).scene
     scene.opacities[7] = math.inf

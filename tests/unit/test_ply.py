@@ -11,7 +11,8 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from symgs_core.ply import OPACITY_LOGIT_MAX, PlyError, graphdeco_properties, load_scene, read_scene, save_scene
+from symgs_core.export import save_scene
+from symgs_core.ply import OPACITY_LOGIT_MAX, PlyError, graphdeco_properties, load_scene, read_scene
 from symgs_core.scene import SH_REST_COUNT, GaussianScene
 from tests.conftest import shared_file
 

@@ -210,7 +210,7 @@ def test_the_python_doors_name_what_they_take(tmp_path):  # noqa: ANN001
     """A preset's name where a config belongs, a path where detection wants a scene: a TypeError that says what to
     pass, not an AttributeError from deep inside; an archive's bytes are taken in any bytes-like form."""
     from symgs_core import decompress, detect
-    from symgs_core.ply import save_scene
+    from symgs_core.export import save_scene
 
     scene = synthetic_scene("global", n=300, seed=1).scene
     path = tmp_path / "s.ply"

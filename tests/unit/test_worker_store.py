@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from api_schemas import JobEvent, JobParams
+from service.api.auth import owner_of
 from service.cli.stack import LocalStack, embedded_redis_server
 from worker.celery_app import make_celery
 from worker.maintenance import (
@@ -28,7 +29,7 @@ from worker.maintenance import (
 from worker.runner import _Progress, headline, mark_failed
 from worker.settings import Settings
 from worker.storage import DirectoryStorage, StorageError
-from worker.store import JobRecord, JobStore, owner_of
+from worker.store import JobRecord, JobStore
 
 from ._samples import sample_report
 
@@ -122,26 +123,26 @@ def test_listing_pages_and_filters(store: JobStore) -> None:
 
 
 def test_idempotency_is_per_owner(store: JobStore) -> None:
-    assert store.claim_idempotency("o1", "k", "a" * 32, "f1", 60) is None
-    assert store.claim_idempotency("o1", "k", "b" * 32, "f2", 60) == ("a" * 32, "f1")
-    assert store.claim_idempotency("o2", "k", "c" * 32, "f1", 60) is None
-    assert store.idempotent_job("o1", "k") == ("a" * 32, "f1")
-    store.forget_idempotency("o1", "k")
-    assert store.idempotent_job("o1", "k") is None and store.claim_idempotency("o1", "k", "d" * 32, "f", 60) is None
+    assert store.idempotency.claim("o1", "k", "a" * 32, "f1", 60) is None
+    assert store.idempotency.claim("o1", "k", "b" * 32, "f2", 60) == ("a" * 32, "f1")
+    assert store.idempotency.claim("o2", "k", "c" * 32, "f1", 60) is None
+    assert store.idempotency.bound("o1", "k") == ("a" * 32, "f1")
+    store.idempotency.forget("o1", "k")
+    assert store.idempotency.bound("o1", "k") is None and store.idempotency.claim("o1", "k", "d" * 32, "f", 60) is None
     assert owner_of(None) == "anonymous" and owner_of("key") != owner_of("key2") and "key" not in owner_of("key")
 
 
 def test_leases(store: JobStore) -> None:
     job = _job(1).id
-    assert store.acquire_lease(job, "w1", 5) and not store.acquire_lease(job, "w2", 5)
-    assert store.renew_lease(job, "w1", 5) and not store.renew_lease(job, "w2", 5)
-    store.release_lease(job, "w2")  # not the holder: no effect
-    assert store.lease_held(job)
-    store.release_lease(job, "w1")
-    assert not store.lease_held(job)
-    assert store.acquire_lease(job, "w2", 0.2)
+    assert store.leases.acquire(job, "w1", 5) and not store.leases.acquire(job, "w2", 5)
+    assert store.leases.renew(job, "w1", 5) and not store.leases.renew(job, "w2", 5)
+    store.leases.release(job, "w2")  # not the holder: no effect
+    assert store.leases.held(job)
+    store.leases.release(job, "w1")
+    assert not store.leases.held(job)
+    assert store.leases.acquire(job, "w2", 0.2)
     time.sleep(0.3)
-    assert not store.lease_held(job) and not store.renew_lease(job, "w2", 5)
+    assert not store.leases.held(job) and not store.leases.renew(job, "w2", 5)
 
 
 def _settings(redis_url: str, tmp_path: Path, **overrides) -> Settings:  # noqa: ANN003
@@ -156,7 +157,7 @@ def test_lost_jobs_are_requeued_then_failed(store: JobStore, redis_url: str, tmp
     for record in (alive, lost, cancelled):
         store.create(record)
         store.transition(record.id, "running", attempts=1, started_at=time.time())
-    store.acquire_lease(alive.id, "w", 30)
+    store.leases.acquire(alive.id, "w", 30)
     store.request_cancel(cancelled.id, 60)
 
     report = SweepReport()
@@ -205,7 +206,7 @@ def test_queued_jobs_whose_message_is_gone_are_sent_again(store: JobStore, redis
     dropped, taken, fresh = _job(1), _job(2), _job(3)
     for record in (dropped, taken):
         store.create(record)
-    store.acquire_lease(taken.id, "w2", 30)  # a worker is starting it
+    store.leases.acquire(taken.id, "w2", 30)  # a worker is starting it
     time.sleep(1.1)
     store.create(fresh)  # queued less than a lease ago: its message may still be on its way
 
@@ -228,10 +229,10 @@ def test_stranded_auto_jobs_move_to_cpu_and_old_jobs_expire(store: JobStore, red
     store.create(_job(1, queue="gpu"))
     store.create(_job(2, queue="gpu", device="cuda"))
     report = SweepReport()
-    store.worker_beat("gpu", "g1")
+    store.heartbeats.beat("gpu", "g1")
     reroute_stranded(store, celery, settings, report)
     assert report.rerouted == []  # a GPU worker is alive
-    store.worker_gone("gpu", "g1")
+    store.heartbeats.gone("gpu", "g1")
     reroute_stranded(store, celery, settings, report)
     assert report.rerouted == [_job(1).id] and store.get(_job(1).id).queue == "cpu"
 
@@ -364,11 +365,11 @@ def test_a_hanging_sweep_does_not_stop_the_heartbeat(store: JobStore, redis_url:
         assert storage.entered.wait(10)
         for _ in range(6):  # three leases
             time.sleep(0.5)
-            assert store.live_workers("cpu", settings.lease_seconds) == 1
+            assert store.heartbeats.live("cpu", settings.lease_seconds) == 1
     finally:
         storage.release.set()
         thread.stop()
-    assert store.live_workers("cpu", settings.lease_seconds) == 0
+    assert store.heartbeats.live("cpu", settings.lease_seconds) == 0
 
 
 def test_a_run_the_storage_failed_under_is_queued_again_within_its_attempts(
@@ -384,12 +385,12 @@ def test_a_run_the_storage_failed_under_is_queued_again_within_its_attempts(
     job = _job(1)
     store.create(job)
     store.transition(job.id, "running", attempts=1)
-    store.acquire_lease(job.id, "me", 30)
+    store.leases.acquire(job.id, "me", 30)
     assert worker.tasks._queue_again(store, job.id, "me", settings)
-    assert store.get(job.id).state == "queued" and not store.lease_held(job.id)
+    assert store.get(job.id).state == "queued" and not store.leases.held(job.id)
     assert store.r.llen("cpu") == 1  # sent again, for a lease from now
     store.transition(job.id, "running", attempts=2)
-    store.acquire_lease(job.id, "me", 30)
+    store.leases.acquire(job.id, "me", 30)
     assert not worker.tasks._queue_again(store, job.id, "me", settings)  # its last run: failed, not queued
     assert store.get(job.id).state == "running" and store.r.llen("cpu") == 1
     code, message = failure_of(StorageError("S3 put failed: http://10.0.0.7:9000 bucket symgs-prod"))
@@ -401,15 +402,15 @@ def test_failure_is_marked_only_by_the_lease_holder(store: JobStore, tmp_path: P
     for i in (1, 2):
         store.create(_job(i))
         store.transition(_job(i).id, "running")
-    store.acquire_lease(_job(1).id, "other-worker", 30)
+    store.leases.acquire(_job(1).id, "other-worker", 30)
     assert mark_failed(_job(1).id, "boom", "x", store=store, storage=storage, token="me", lease_s=30) is None
-    assert store.get(_job(1).id).state == "running" and store.lease_held(_job(1).id)
+    assert store.get(_job(1).id).state == "running" and store.leases.held(_job(1).id)
 
-    store.acquire_lease(_job(2).id, "me", 30)
+    store.leases.acquire(_job(2).id, "me", 30)
     failed = mark_failed(_job(2).id, "bad_sh_count", "scene.ply: 10 f_rest", store=store, storage=storage, token="me",
                          lease_s=30)  # fmt: skip
     assert (failed.state, failed.error_code, failed.error_message) == ("failed", "bad_sh_count", "scene.ply: 10 f_rest")
-    assert not store.lease_held(_job(2).id)
+    assert not store.leases.held(_job(2).id)
 
 
 def test_headline_of_a_report() -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from collections.abc import AsyncIterator
@@ -13,10 +12,10 @@ from fastapi import APIRouter, Header, Request
 from redis import RedisError
 from sse_starlette import EventSourceResponse
 
-from api_schemas import TERMINAL_STATES
-from worker.store import events_key, job_key
+from worker.gateway import follow_events
 
-from ..deps import OwnerDep, StoreDep
+from ..auth import OwnerDep
+from ..deps import StoreDep
 from ..errors import ApiError, error_responses
 from ..job_view import owned_record
 
@@ -24,15 +23,13 @@ router = APIRouter(prefix="/v1/jobs", tags=["events"])
 log = logging.getLogger(__name__)
 _STREAM_ID = re.compile(r"^(\d{1,20})-(\d{1,20})$")
 _ID_PART_MAX = 2**64 - 1  # each half of a Redis stream id is an unsigned 64-bit integer
-_WAIT_MS = 10_000  # block this long for new events before checking that the job still exists
-_BATCH = 200
 
 
 async def job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterator[dict]:
     """SSE messages of a job's stream after id ``after``, ending with the event of a final state. Should Redis go
     away, the stream ends early: the client resumes with the last id it received, as SSE clients do."""
     try:
-        async for message in _job_events(r, job_id, after):
+        async for message in follow_events(r, job_id, after):
             yield message
     except RedisError as exc:
         log.warning("events of job %s: the job store went away (%s); ending the stream", job_id, type(exc).__name__)
@@ -45,30 +42,6 @@ def _is_stream_id(text: str) -> bool:
         return False
     ms, seq = (int(part) for part in match.groups())
     return ms <= _ID_PART_MAX and seq <= _ID_PART_MAX and (ms, seq) != (_ID_PART_MAX, _ID_PART_MAX)
-
-
-async def _job_events(r: aioredis.Redis, job_id: str, after: str) -> AsyncIterator[dict]:
-    key = events_key(job_id)
-    while True:
-        entries = await r.xrange(key, min=f"({after}", count=_BATCH)
-        for entry_id, fields in entries:
-            after = entry_id
-            data = fields["data"]
-            event = json.loads(data)
-            yield {"id": entry_id, "event": event["kind"], "data": data}
-            if event["kind"] == "state" and event["state"] in TERMINAL_STATES:
-                return
-        if entries:
-            continue
-        state = await r.hget(job_key(job_id), "state")
-        if state is None:
-            return  # deleted
-        if state in TERMINAL_STATES:
-            # Its final event was sent before `after` (a replay from past the end), or has just been added.
-            if not await r.xrange(key, min=f"({after}", count=1):
-                return
-            continue
-        await r.xread({key: after}, count=1, block=_WAIT_MS)
 
 
 @router.get(

@@ -9,10 +9,10 @@ from fastapi.responses import JSONResponse
 from starlette.convertors import StringConvertor, register_url_convertor
 
 from api_schemas import Job, JobPage, JobState
-from worker.settings import Settings
-from worker.store import JobRecord, JobStore
+from worker.gateway import JobRecord, JobStore, Settings
 
-from ..deps import CeleryDep, OwnerDep, SettingsDep, StorageDep, StoreDep
+from ..auth import OwnerDep
+from ..deps import CeleryDep, SettingsDep, StorageDep, StoreDep
 from ..errors import ApiError, error_responses
 from ..job_view import job_headers, owned_record, public_job
 from ..submission import submit

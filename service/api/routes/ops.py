@@ -10,9 +10,10 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict
 from redis import RedisError
 
-from worker.celery_app import QUEUES
+from api_schemas import QUEUES
 
-from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep
+from ..auth import OwnerDep
+from ..deps import SettingsDep, StorageDep, StoreDep
 from ..errors import error_responses
 
 router = APIRouter(tags=["operations"])
@@ -53,7 +54,7 @@ def healthz() -> Health:
 def readyz(store: StoreDep, storage: StorageDep, settings: SettingsDep) -> JSONResponse:
     try:
         store.r.ping()
-        workers = {mode: store.live_workers(mode, settings.lease_seconds) for mode in QUEUES}
+        workers = {mode: store.heartbeats.live(mode, settings.lease_seconds) for mode in QUEUES}
         redis_ok = True
     except RedisError:
         redis_ok, workers = False, {mode: 0 for mode in QUEUES}

@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from api_schemas import PresetInfo
 
-from ..deps import OwnerDep
+from ..auth import OwnerDep
 from ..errors import error_responses
 
 router = APIRouter(prefix="/v1/presets", tags=["jobs"])

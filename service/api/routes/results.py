@@ -9,10 +9,10 @@ from fastapi.responses import StreamingResponse
 
 from api_schemas import Report
 from symgs_core.export.formats import EXPORTS, ExportFormat
-from worker.storage import Storage
-from worker.store import JobStore
+from worker.gateway import JobStore, Storage
 
-from ..deps import OwnerDep, StorageDep, StoreDep
+from ..auth import OwnerDep
+from ..deps import StorageDep, StoreDep
 from ..errors import ApiError, error_responses
 from ..job_view import RETRY_AFTER_S, owned_record
 

@@ -1,20 +1,5 @@
-"""The job store: job records, their event streams, cancel flags, worker leases and liveness, in Redis.
-
-Keys (prefix ``symgs:``)::
-
-    job:<id>                 hash: the job record (see JobRecord)
-    job:<id>:events          stream: state and progress events, relayed by the API as SSE
-    job:<id>:cancel          flag: a client asked to cancel; the running task polls it
-    job:<id>:lease           token of the worker running the job, kept alive by its heartbeat
-    jobs                     zset id -> created_at (all jobs)
-    jobs:state:<state>       zset id -> created_at
-    jobs:finished            zset id -> finished_at (for expiry)
-    jobs:quarantine          zset id -> time of the next try: expired jobs whose files would not delete
-    owner:<o>:jobs, owner:<o>:state:<state>   zset id -> created_at (listing per API key)
-    job:<id>:resent          flag: a sweep sent the queued job's message again (maintenance.recover_dropped)
-    idem:<o>:<key hash>      id of the job created with that Idempotency-Key, and its request's fingerprint
-    workers:<mode>           zset worker name -> last heartbeat
-    metrics:durations        hash: histogram of job durations (bucket counters, sum, count)
+"""Job records: the hash of each job, the indexes that list them (by state, by owner, finished, set aside), their
+cancel flags, and the checked state changes, each appending its event to the job's stream (``events``).
 
 State changes are checked transactions, so concurrent writers (a worker, the API cancelling, a reaper) cannot
 move a job out of a final state or run it twice.
@@ -22,23 +7,19 @@ move a job out of a final state or run it twice.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import redis
-from redis.backoff import ExponentialWithJitterBackoff
-from redis.retry import Retry
 
-from api_schemas import TERMINAL_STATES, JobEvent, JobParams
+from api_schemas import JOB_STATES, TERMINAL_STATES, JobParams
 
-P = "symgs:"
-STATES = ("queued", "running", "succeeded", "failed", "cancelled")
-EVENTS_MAXLEN = 5000  # progress events kept per job; state events are few
-DURATION_BUCKETS = (1, 5, 15, 30, 60, 120, 300, 600, 1800, 3600, 7200, 21600)  # seconds
+from .events import EVENTS_MAXLEN, event
+from .keys import P, events_key, job_key
+
+STATES = JOB_STATES
 _ALLOWED = {  # to-state -> from-states
     "queued": {"running"},  # a reaper re-queues a job whose worker was lost
     "running": {"queued"},
@@ -46,34 +27,6 @@ _ALLOWED = {  # to-state -> from-states
     "failed": {"queued", "running"},
     "cancelled": {"queued", "running"},
 }
-
-# Renew or release a lease only while it still holds our token.
-_RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
-_RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
-# The workers' client waits out a Redis restart (about 30 s of retries) rather than failing the job it runs.
-PATIENT = Retry(ExponentialWithJitterBackoff(base=0.1, cap=2.0), retries=20)
-
-
-def job_key(job_id: str) -> str:
-    return f"{P}job:{job_id}"
-
-
-def events_key(job_id: str) -> str:
-    return f"{P}job:{job_id}:events"
-
-
-def _binding(value: str | None) -> tuple[str, str] | None:
-    if value is None:
-        return None
-    job_id, _, fingerprint = value.partition(" ")
-    return job_id, fingerprint
-
-
-def owner_of(api_key: str | None) -> str:
-    """The owner id of jobs created with an API key: a digest, so the key itself is never stored."""
-    if not api_key:
-        return "anonymous"
-    return hashlib.sha256(api_key.encode()).hexdigest()[:24]
 
 
 @dataclass
@@ -109,18 +62,8 @@ class JobRecord:
     _JSON = ("params", "scene", "images", "mirrors", "metrics", "artifacts")
 
     def to_hash(self) -> dict[str, str]:
-        out: dict[str, str] = {}
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if name == "params":
-                out[name] = value.model_dump_json()
-            elif name in self._JSON:
-                out[name] = json.dumps(value)
-            elif isinstance(value, bool):
-                out[name] = "1" if value else "0"
-            else:
-                out[name] = "" if value is None else str(value)
-        return out
+        values = {name: getattr(self, name) for name in self.__dataclass_fields__ if name != "params"}
+        return {**_hash_fields(values), "params": self.params.model_dump_json()}
 
     @classmethod
     def from_hash(cls, h: dict[str, str]) -> JobRecord:
@@ -173,36 +116,11 @@ def _hash_fields(fields: dict[str, Any]) -> dict[str, str]:
     return out
 
 
-def _event(kind: str, state: str, h: dict[str, str], now: float) -> dict[str, str]:
-    event = JobEvent(
-        kind=kind,
-        state=state,
-        stage=h.get("stage") or None,
-        level=int(h["level"]) if h.get("level") else None,
-        progress=float(h.get("progress") or 0),
-        message=h.get("message", ""),
-        eta_s=float(h["eta_s"]) if h.get("eta_s") else None,
-        time=now,
-    )
-    return {"data": event.model_dump_json()}
-
-
-class JobStore:
-    """Synchronous access to the job store, for the workers and the API's thread pool."""
+class Records:
+    """The job records, and the indexes and flags kept beside them."""
 
     def __init__(self, client: redis.Redis) -> None:
         self.r = client
-        self._renew = client.register_script(_RENEW)
-        self._release = client.register_script(_RELEASE)
-
-    @classmethod
-    def from_url(cls, url: str, *, patient: bool = False) -> JobStore:
-        """A store on Redis at ``url``; ``patient`` (workers) retries through a Redis restart, where the API answers
-        503 at once."""
-        retry = {"retry": PATIENT} if patient else {}
-        return cls(redis.Redis.from_url(url, decode_responses=True, health_check_interval=30, **retry))
-
-    # -- records -----------------------------------------------------------------------------------------------
 
     def create(self, record: JobRecord) -> None:
         now = time.time()
@@ -214,7 +132,7 @@ class JobStore:
             p.zadd(f"{P}jobs:state:{record.state}", {record.id: now})
             p.zadd(f"{P}owner:{record.owner}:jobs", {record.id: now})
             p.zadd(f"{P}owner:{record.owner}:state:{record.state}", {record.id: now})
-            p.xadd(events_key(record.id), _event("state", record.state, h, now))
+            p.xadd(events_key(record.id), event("state", record.state, h, now))
             p.execute()
 
     def get(self, job_id: str) -> JobRecord | None:
@@ -262,7 +180,7 @@ class JobStore:
             p.zadd(f"{P}owner:{h['owner']}:state:{to}", {job_id: created})
             if to in TERMINAL_STATES:
                 p.zadd(f"{P}jobs:finished", {job_id: now})
-            p.xadd(events_key(job_id), _event("state", to, merged, now))
+            p.xadd(events_key(job_id), event("state", to, merged, now))
             return merged
 
         merged = self.r.transaction(attempt, key, value_from_callable=True)
@@ -281,7 +199,7 @@ class JobStore:
         h = _hash_fields({**fields, "updated_at": now})
         with self.r.pipeline(transaction=True) as p:
             p.hset(job_key(job_id), mapping=h)
-            p.xadd(events_key(job_id), _event("progress", "running", h, now), maxlen=EVENTS_MAXLEN, approximate=True)
+            p.xadd(events_key(job_id), event("progress", "running", h, now), maxlen=EVENTS_MAXLEN, approximate=True)
             p.execute()
 
     def delete(self, job_id: str) -> None:
@@ -324,30 +242,6 @@ class JobStore:
                 p.zcard(f"{P}jobs:state:{state}")
             return dict(zip(STATES, map(int, p.execute()), strict=True))
 
-    # -- idempotency -------------------------------------------------------------------------------------------
-
-    def _idem_key(self, owner: str, key: str) -> str:
-        return f"{P}idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
-
-    def idempotent_job(self, owner: str, key: str) -> tuple[str, str] | None:
-        """(job id, request fingerprint) bound to ``key``, or None."""
-        return _binding(self.r.get(self._idem_key(owner, key)))
-
-    def forget_idempotency(self, owner: str, key: str) -> None:
-        self.r.delete(self._idem_key(owner, key))
-
-    def claim_idempotency(
-        self, owner: str, key: str, job_id: str, fingerprint: str, ttl_s: int
-    ) -> tuple[str, str] | None:
-        """Bind ``key`` to ``job_id`` and the request's ``fingerprint``; returns the (job id, fingerprint) already
-        bound to it, or None when the claim won."""
-        name = self._idem_key(owner, key)
-        if self.r.set(name, f"{job_id} {fingerprint}", nx=True, ex=ttl_s):
-            return None
-        return _binding(self.r.get(name))
-
-    # -- cancellation ------------------------------------------------------------------------------------------
-
     def abandon(self, owner: str, job_id: str) -> None:
         """Files of a job that was never recorded, which the storage could not delete yet: the sweep tries again."""
         self.r.sadd(f"{P}abandoned", f"{owner}/{job_id}")
@@ -366,68 +260,3 @@ class JobStore:
 
     def cancel_requested(self, job_id: str) -> bool:
         return bool(self.r.exists(f"{P}job:{job_id}:cancel"))
-
-    # -- leases: which worker runs a job -----------------------------------------------------------------------
-
-    def acquire_lease(self, job_id: str, token: str, ttl_s: float) -> bool:
-        return bool(self.r.set(f"{P}job:{job_id}:lease", token, nx=True, px=int(ttl_s * 1000)))
-
-    def renew_lease(self, job_id: str, token: str, ttl_s: float) -> bool:
-        """Extend our lease; False when it expired or another worker holds it now."""
-        return bool(self._renew(keys=[f"{P}job:{job_id}:lease"], args=[token, int(ttl_s * 1000)]))
-
-    def release_lease(self, job_id: str, token: str) -> None:
-        self._release(keys=[f"{P}job:{job_id}:lease"], args=[token])
-
-    def lease_held(self, job_id: str) -> bool:
-        return bool(self.r.exists(f"{P}job:{job_id}:lease"))
-
-    def claim_resend(self, job_id: str, ttl_s: float) -> bool:
-        """One sweep wins the resending of a queued job's message, once per ``ttl_s``."""
-        return bool(self.r.set(f"{P}job:{job_id}:resent", "1", nx=True, px=int(ttl_s * 1000)))
-
-    def claim_requeue(self, job_id: str, attempt: int, ttl_s: int) -> bool:
-        """One reaper wins the re-queue of a given attempt of a job."""
-        return bool(self.r.set(f"{P}job:{job_id}:requeue:{attempt}", "1", nx=True, ex=ttl_s))
-
-    # -- workers -----------------------------------------------------------------------------------------------
-
-    def worker_beat(self, mode: str, name: str) -> None:
-        self.r.zadd(f"{P}workers:{mode}", {name: time.time()})
-
-    def worker_gone(self, mode: str, name: str) -> None:
-        self.r.zrem(f"{P}workers:{mode}", name)
-
-    def live_workers(self, mode: str, within_s: float) -> int:
-        key = f"{P}workers:{mode}"
-        cutoff = time.time() - within_s
-        with self.r.pipeline(transaction=False) as p:
-            p.zremrangebyscore(key, "-inf", cutoff - 3600)  # forget workers silent for an hour
-            p.zcount(key, cutoff, "+inf")
-            return int(p.execute()[1])
-
-    # -- metrics -----------------------------------------------------------------------------------------------
-
-    def record_duration(self, seconds: float) -> None:
-        key = f"{P}metrics:durations"
-        with self.r.pipeline(transaction=True) as p:
-            for bound in DURATION_BUCKETS:
-                if seconds <= bound:
-                    p.hincrby(key, f"le:{bound}", 1)
-            p.hincrbyfloat(key, "sum", seconds)
-            p.hincrby(key, "count", 1)
-            p.execute()
-
-    def durations(self) -> tuple[list[tuple[float, int]], float, int]:
-        """Cumulative bucket counts ``[(upper bound, count)]``, the sum and the count of job durations."""
-        h = self.r.hgetall(f"{P}metrics:durations")
-        buckets = [(float(b), int(h.get(f"le:{b}", 0))) for b in DURATION_BUCKETS]
-        return buckets, float(h.get("sum", 0)), int(h.get("count", 0))
-
-    def queue_depth(self, queues: Iterable[str]) -> dict[str, int]:
-        """Messages waiting in each Celery queue (the Redis transport keeps a queue as a list of its name)."""
-        with self.r.pipeline(transaction=False) as p:
-            names = list(queues)
-            for name in names:
-                p.llen(name)
-            return dict(zip(names, map(int, p.execute()), strict=True))

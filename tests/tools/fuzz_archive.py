@@ -20,7 +20,7 @@ cannot hold the scene), ``accepted`` (a finite scene), ``non_finite`` (an accept
 stored or expanded), ``crash`` (any other exception, or a worker process that died) and ``hang`` (past
 ``--timeout`` seconds).
 
-    .venv/bin/python benchmarks/fuzz_archive.py --mutants 100000 --workers 2
+    .venv/bin/python tests/tools/fuzz_archive.py --mutants 100000 --workers 2
 """
 
 from __future__ import annotations

@@ -15,11 +15,11 @@ from typing import cast
 from matplotlib.axes import Axes
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from ..bench import curve
-from ..bench.rows import BenchRow
-from ._png import new_figure, png_bytes
-from .axes import psnr_axis
-from .palette import method_style
+from ..pictures._png import new_figure, png_bytes
+from ..pictures.axes import psnr_axis
+from ..pictures.palette import method_style
+from . import curve
+from .rows import BenchRow
 
 SCENE_MARKERS = "os^DvP<>hX*p"
 

@@ -12,7 +12,7 @@ and every job has finished, it counts:
     succeeded   and how many distinct results they hold (the same job must give the same bytes however often it was
                 interrupted)
 
-    .venv/bin/python benchmarks/fault_jobs.py --jobs 100 --workers 2 --kills 10 --restarts 10 --every 8 --pace 1.5
+    .venv/bin/python tests/tools/fault_jobs.py --jobs 100 --workers 2 --kills 10 --restarts 10 --every 8 --pace 1.5
 """
 
 from __future__ import annotations

@@ -1,0 +1,83 @@
+"""The level loop's checkpoint: its state, records and best size saved after every level, and read back by a rerun
+of the same job (the same ``fingerprint`` of its inputs), so a job whose worker died resumes after its last level."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+
+from ..config import CompressConfig
+from ..files import partial_file
+from ..report import LevelReport
+from ..scene import GaussianScene
+from .state import LevelState
+
+
+def fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Path | None) -> str:
+    """The job's inputs, which a checkpoint must match to be resumed from."""
+    h = hashlib.sha256()
+    for t in scene.tensors().values():
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    h.update(json.dumps(asdict(config), sort_keys=True, default=str).encode())
+    if images is not None:  # the dataset's contents, not where it lies: a job resumed on another host matches
+        root = Path(images)
+        for file in sorted(p for p in (root.rglob("*") if root.is_dir() else [root]) if p.is_file()):
+            h.update(str(file.relative_to(root) if root.is_dir() else file.name).encode())
+            with file.open("rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """Where the level decisions are saved, and the job's inputs (``fingerprint``) a saved file must match."""
+
+    path: Path
+    fingerprint: str
+
+
+def save_checkpoint(checkpoint: Checkpoint, state: LevelState, records: list[LevelReport], done: bool,
+                     best_bytes: int) -> None:  # fmt: skip
+    """The level loop's progress so far, for a rerun of the same job to resume after it."""
+    path = checkpoint.path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "fingerprint": checkpoint.fingerprint,
+        "stored": {k: v.detach().cpu() for k, v in state.stored.tensors().items()},
+        "normals": state.normals.detach().cpu(),
+        "offsets": state.offsets.detach().cpu(),
+        "bits": state.bits.cpu(),
+        "records": [asdict(r) for r in records],
+        "done": done,
+        "best_bytes": best_bytes,
+    }
+    # A temporary file of its own: two runs of one job may overlap (a worker whose lease lapsed while Redis
+    # restarted runs on until it notices), and a shared temporary name let one move the other's half-written file
+    # into place, or find it gone. Moved into place whole: a worker killed mid-write leaves the previous one intact.
+    with partial_file(path) as (out, tmp):
+        torch.save(payload, out)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(
+    checkpoint: Checkpoint, device: torch.device
+) -> tuple[LevelState, list[LevelReport], bool, int] | None:
+    """The state, the records, whether the search was done, and the best archive's bytes saved at ``checkpoint``;
+    None where there is none, it cannot be read, or it was saved for other inputs."""
+    if not checkpoint.path.exists():
+        return None
+    try:
+        payload = torch.load(checkpoint.path, map_location=device, weights_only=True)
+    except Exception:  # noqa: BLE001 - an unreadable checkpoint is recomputed, never trusted
+        return None
+    if payload.get("fingerprint") != checkpoint.fingerprint or "best_bytes" not in payload:
+        return None
+    state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
+    records = [LevelReport(**{**r, "normal": tuple(r["normal"])}) for r in payload["records"]]
+    return state, records, bool(payload["done"]), int(payload["best_bytes"])
