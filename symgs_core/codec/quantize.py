@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 
 from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
-from .entropy import decode_table, encode_table
+from .entropy import CODING_LEVEL, ESTIMATE_LEVEL, decode_table, encode_table, table_bits
 from .errors import ArchiveError
-from .morton import decode_codes, deinterleave, encode_codes, fits, interleave
-from .section import MAX_MAGNITUDE, EncodedSection, SectionKind, join_parts, split_parts
+from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, interleave
+from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
@@ -221,6 +221,11 @@ def _smaller(q: np.ndarray, shape: tuple[int, int]) -> tuple[bytes, bool]:
     return (mixed, True) if len(mixed) < len(plain) else (plain, False)
 
 
+def _smaller_bits(q: np.ndarray, shape: tuple[int, int], level: int = ESTIMATE_LEVEL) -> float:
+    """About the bits of ``_smaller(q, shape)``'s coding (its zstd streams at ``level``)."""
+    return min(table_bits(q.reshape(shape), level), table_bits(_decorrelate(q).reshape(shape), level))
+
+
 def _flag(params: dict[str, Any], key: str, codec: str) -> None:
     if type(params.get(key)) is not bool:
         raise ArchiveError("bad_header", f"{codec}: parameter {key}={params.get(key)!r:.40} must be true or false")
@@ -260,6 +265,11 @@ class PositionCodec:
         params = {"origin": [float(o) for o in origin], "step": step, "morton": morton}
         return EncodedSection(payload, _raw_length(values.shape), params)
 
+    def estimate(self, values: np.ndarray) -> Estimate:
+        q, origin, step = self._quantise(values)
+        bits = min(table_bits(q), codes_bits(interleave(q))) if fits(q) else table_bits(q)
+        return Estimate(bits, _positions(q, origin, step))
+
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         # Archives written before Morton gap coding carry no "morton" flag: their positions are a table.
         _keys(params, {"origin", "step", "morton"} if "morton" in params else {"origin", "step"}, self.name)
@@ -278,7 +288,12 @@ class PositionCodec:
             q = deinterleave(decode_codes(payload, shape[0], self.name))
         else:
             q = _symbols(payload, shape[0], 3, self.name)
-        return (np.asarray(params["origin"]) + q * params["step"]).astype(np.float32)
+        return _positions(q, params["origin"], params["step"])
+
+
+def _positions(q: np.ndarray, origin: Any, step: float) -> np.ndarray:
+    """Positions [N, 3] float32 of grid cells ``q`` [N, 3] (``origin`` [3])."""
+    return (np.asarray(origin) + q * step).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -289,15 +304,22 @@ class RotationCodec:
     name: str = field(default="q-rot", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _table(self, values: np.ndarray) -> np.ndarray:
+        """[N, 4]: each quaternion's largest component's index and the other three's grid cells."""
         q = _finite(values, self.name)
         norm = np.linalg.norm(q, axis=1, keepdims=True)
         q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
         largest = np.abs(q).argmax(axis=1)
         q *= np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
         others = q[~np.eye(4, dtype=bool)[largest]].reshape(len(q), 3)
-        table = np.concatenate([largest[:, None], _grid(others, 0.0, self.step, self.name)], axis=1)
-        return EncodedSection(encode_table(table), _raw_length(values.shape), {"step": float(self.step)})
+        return np.concatenate([largest[:, None], _grid(others, 0.0, self.step, self.name)], axis=1)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        return EncodedSection(encode_table(self._table(values)), _raw_length(values.shape), {"step": float(self.step)})
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        table = self._table(values)
+        return Estimate(table_bits(table), _quaternions(table, self.step))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"step"}, self.name)
@@ -310,16 +332,22 @@ class RotationCodec:
         largest = table[:, 0]
         if n and (largest.min() < 0 or largest.max() > 3):
             raise ArchiveError("corrupt_section", f"{self.name}: largest-component index outside 0..3")
-        others = np.clip(table[:, 1:] * params["step"], -SQRT1_2, SQRT1_2)
-        squares = (others**2).sum(axis=1)
-        # Rounding can push the three past unit length: rescale them so the quaternion stays unit.
-        scale = np.where(squares > 1.0, 1.0 / np.sqrt(np.maximum(squares, 1e-30)), 1.0)
-        others *= scale[:, None]
-        q = np.empty((n, 4))
-        mask = np.eye(4, dtype=bool)[largest]
-        q[~mask] = others.reshape(-1)
-        q[mask] = np.sqrt(np.clip(1.0 - (others**2).sum(axis=1), 0.0, 1.0))
-        return q.astype(np.float32)
+        return _quaternions(table, params["step"])
+
+
+def _quaternions(table: np.ndarray, step: float) -> np.ndarray:
+    """Unit quaternions [N, 4] float32 of a ``RotationCodec`` table [N, 4] (largest index in 0..3)."""
+    n, largest = len(table), table[:, 0]
+    others = np.clip(table[:, 1:] * step, -SQRT1_2, SQRT1_2)
+    squares = (others**2).sum(axis=1)
+    # Rounding can push the three past unit length: rescale them so the quaternion stays unit.
+    scale = np.where(squares > 1.0, 1.0 / np.sqrt(np.maximum(squares, 1e-30)), 1.0)
+    others *= scale[:, None]
+    q = np.empty((n, 4))
+    mask = np.eye(4, dtype=bool)[largest]
+    q[~mask] = others.reshape(-1)
+    q[mask] = np.sqrt(np.clip(1.0 - (others**2).sum(axis=1), 0.0, 1.0))
+    return q.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -330,11 +358,18 @@ class ScalarGridCodec:
     name: str = field(default="q-grid", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray) -> tuple[np.ndarray, float, float]:
         x = _finite(values, self.name).reshape(len(values), -1)
         step, origin = native_grid(x, self.step) or (self.step, float(x.min()) if x.size else 0.0)
-        q = _grid(x, origin, step, self.name)
+        return _grid(x, origin, step, self.name), origin, step
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q, origin, step = self._quantise(values)
         return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": step})
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        q, origin, step = self._quantise(values)
+        return Estimate(table_bits(q), _on_grid(q, origin, step).reshape(values.shape))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step"}, self.name)
@@ -345,7 +380,12 @@ class ScalarGridCodec:
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         c = int(np.prod(shape[1:], dtype=np.int64))
         q = _symbols(payload, shape[0], c, self.name)
-        return (params["origin"] + q * params["step"]).astype(np.float32).reshape(shape)
+        return _on_grid(q, params["origin"], params["step"]).reshape(shape)
+
+
+def _on_grid(q: np.ndarray, origin: float, step: float) -> np.ndarray:
+    """float32 values of grid cells ``q`` (any shape)."""
+    return (origin + q * step).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -356,11 +396,18 @@ class OpacityCodec:
     name: str = field(default="q-alpha", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray) -> tuple[np.ndarray, float]:
         alpha = 1.0 / (1.0 + np.exp(-_finite(values, self.name)))
         step, _ = native_grid(alpha, self.step, through_zero=True) or (self.step, 0.0)
-        q = _grid(alpha[:, None], 0.0, step, self.name)
+        return _grid(alpha[:, None], 0.0, step, self.name), step
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q, step = self._quantise(values)
         return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": step})
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        q, step = self._quantise(values)
+        return Estimate(table_bits(q), _logits(q[:, 0], step))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"step"}, self.name)
@@ -369,10 +416,14 @@ class OpacityCodec:
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        alpha = _symbols(payload, shape[0], 1, self.name)[:, 0] * params["step"]
-        lo, hi = 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MIN)), 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MAX))
-        alpha = np.clip(alpha, lo, hi)
-        return np.log(alpha / (1.0 - alpha)).astype(np.float32)
+        return _logits(_symbols(payload, shape[0], 1, self.name)[:, 0], params["step"])
+
+
+def _logits(q: np.ndarray, step: float) -> np.ndarray:
+    """Opacity logits [N] float32 of alpha cells ``q`` [N], within what the PLY reader keeps."""
+    lo, hi = 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MIN)), 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MAX))
+    alpha = np.clip(q * step, lo, hi)
+    return np.log(alpha / (1.0 - alpha)).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -383,12 +434,20 @@ class ShDcCodec:
     name: str = field(default="q-dc", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray) -> tuple[np.ndarray, float, float]:
         x = _finite(values, self.name)
         step, origin = native_grid(x, self.step) or (self.step, 0.0)
-        payload, mixed = _smaller(_grid(x, origin, step, self.name), (len(x), 3))
+        return _grid(x, origin, step, self.name), origin, step
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        q, origin, step = self._quantise(values)
+        payload, mixed = _smaller(q, (len(q), 3))
         params = {"origin": origin, "step": step, "decorrelate": mixed}
         return EncodedSection(payload, _raw_length(values.shape), params)
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        q, origin, step = self._quantise(values)
+        return Estimate(_smaller_bits(q, (len(q), 3)), _on_grid(q, origin, step))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step", "decorrelate"}, self.name)
@@ -400,7 +459,7 @@ class ShDcCodec:
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         q = _symbols(payload, shape[0], 3, self.name)
         q = _correlate(q) if params["decorrelate"] else q
-        return (params["origin"] + q * params["step"]).astype(np.float32)
+        return _on_grid(q, params["origin"], params["step"])
 
 
 def check_bands(params: dict[str, Any], degree: int, codec: str) -> None:
@@ -429,7 +488,8 @@ class ShRestCodec:
     name: str = field(default="q-sh", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """Each band's symbols [N, width, 3] and each Gaussian's degree [N]: its highest band with a non-zero one."""
         n, k, _ = values.shape
         degree = {0: 0, 3: 1, 8: 2, 15: 3}[k]
         x = _finite(values, self.name)
@@ -437,10 +497,25 @@ class ShRestCodec:
             raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
         bands = [_grid(x[:, s, :], 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
         present = np.stack([b.any(axis=(1, 2)) for b in bands], axis=1) if bands else np.zeros((n, 0), dtype=bool)
-        # Degree of each Gaussian: the highest band with a non-zero symbol (0 when none).
         per = np.zeros(n, dtype=np.int64)
         if degree:
             per = np.where(present.any(axis=1), degree - np.argmax(present[:, ::-1], axis=1), 0)
+        return bands, per
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        bands, per = self._quantise(values)
+        bits = table_bits(per[:, None]) + 32.0 * (len(bands) + 1)
+        decoded = np.zeros(values.shape, dtype=np.float32)
+        for lvl, (band, rows, step) in enumerate(zip(bands, band_slices(len(bands)), self.steps), start=1):
+            kept = band[per >= lvl]
+            # zstd's matches find much of what a flat column of every coefficient holds: coded at its own level
+            bits += _smaller_bits(kept, (kept.size, 1), CODING_LEVEL)
+            decoded[:, rows, :] = band.astype(np.float32) * np.float32(step)
+        return Estimate(bits, decoded)
+
+    def encode(self, values: np.ndarray) -> EncodedSection:
+        bands, per = self._quantise(values)
+        degree = len(bands)
         parts, mixed = [encode_table(per[:, None])], []
         for lvl, band in enumerate(bands, start=1):
             kept = band[per >= lvl]

@@ -37,6 +37,15 @@ class EncodedSection:
     params: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """What ``encode`` then ``decode`` would give, without writing the bytes: the payload's bits, estimated from the
+    symbols' statistics (``entropy.table_bits``), and the decoded values [N, ...], exactly."""
+
+    bits: float
+    decoded: np.ndarray
+
+
 class SectionCodec(Protocol):
     """One way to store a section. ``kind``: what ``decode`` returns (float32 values or a bool matrix)."""
 
@@ -56,6 +65,14 @@ class SectionCodec(Protocol):
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         """The array of ``shape``; ArchiveError("corrupt_section") when the payload disagrees. Runs after ``check``."""
+        ...
+
+
+class RateCodec(SectionCodec, Protocol):
+    """A section codec whose rate can be had without coding: the quantisers a rate model walks (``pipeline.budget``)."""
+
+    def estimate(self, values: np.ndarray) -> Estimate:
+        """``values`` as ``encode`` takes them -> their estimated bits and what ``decode`` would return."""
         ...
 
 

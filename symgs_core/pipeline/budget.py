@@ -1,16 +1,16 @@
 """The codec that spends the PSNR budget: the fewest bytes whose predicted error stays within what the floor allows.
 
 Each section has a ladder of quantisers: its step from 1/8 to 32 times the preset's, by sqrt 2 (higher SH also as a
-palette of vectors, ``codec.palette``, at the same steps). A rung's bytes are a real encode of the section; its error
-is the sensitivity-weighted squared error of its decode (``sensitivity``), a prediction of the fitting renders'
-error. Entropy-coded quantisers trade one bit per coded component for a quarter of the error, so a section's bits
-fall convexly as its error grows: at a price ``mu`` (bits per unit of squared error) each section's best rung
-minimises bits + mu * error by itself, and one bisection on ``mu`` spends the allowed error, wherever it buys the
-most bytes. At the same price a Gaussian's highest SH bands go when their error costs less than their bits are worth
-(model no more than the scene needs); Gaussians the renders hardly miss are ranked here and removed as far as the
-renders allow (``encode``).
+palette of vectors, ``codec.palette``, at the same steps). A rung's bytes are estimated from its symbols (calibrated
+by one real encode per section, ``Ladder``); its error is the sensitivity-weighted squared error of what it decodes
+to (``sensitivity``), a prediction of the fitting renders' error. Entropy-coded quantisers trade one bit per coded
+component for a quarter of the error, so a section's bits fall convexly as its error grows: at a price ``mu`` (bits
+per unit of squared error) each section's best rung minimises bits + mu * error by itself, and one bisection on
+``mu`` spends the allowed error, wherever it buys the most bytes. At the same price a Gaussian's highest SH bands go
+when their error costs less than their bits are worth (model no more than the scene needs); Gaussians the renders
+hardly miss are ranked here and removed as far as the renders allow (``encode``).
 
-Rungs are evaluated lazily and kept, so moving ``mu`` costs a few encodes, and the calibration (``choose`` again
+Rungs are evaluated lazily and kept, so moving ``mu`` costs a few estimates, and the calibration (``choose`` again
 with the allowed error rescaled by what real renders measured, see ``encode``) costs none.
 """
 
@@ -35,7 +35,7 @@ from ..codec.quantize import (
     ShRestCodec,
     band_slices,
 )
-from ..codec.section import SectionCodec
+from ..codec.section import RateCodec, SectionCodec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..scene import GaussianScene
@@ -58,7 +58,7 @@ def extent_of(stored: GaussianScene) -> float:
 
 @dataclass(frozen=True)
 class Rung:
-    codec: SectionCodec
+    codec: RateCodec
     bits: float
     error: float
 
@@ -71,44 +71,48 @@ class Ladder:
     are searched over every rung (``exhaustive``); the higher SH, whose encodes cost the most, walks downhill from
     where it last stood, looking two rungs ahead before it stops.
 
-    With ``sample`` (indices of the set, in coding order) a rung's bytes and error are those of the sample's encode,
-    scaled by the ratio that the whole set's encode at the preset's own rung (k = 0) has to the sample's there: one
-    whole encode per section, whatever the number of rungs visited.
+    A rung's bits are an estimate (``codec.estimate``: its symbols' statistics, no stream written) scaled by the
+    ratio of one real encode of the whole set to the estimate at the preset's own rung (k = 0): one encode per
+    section, whatever the number of rungs visited. With ``sample`` (indices of the set, in coding order) a rung's
+    bits and error are the sample's, scaled by the same ratios of the whole set to the sample at k = 0.
     """
 
-    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], SectionCodec], sens: Sensitivity,
+    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], RateCodec], sens: Sensitivity,
                  *, exhaustive: bool = True, sample: np.ndarray | None = None) -> None:  # fmt: skip
         self.section, self.values, self.make, self.sens = section, values, make, sens
         self.exhaustive = exhaustive
         self._rungs: dict[int, Rung] = {}
         self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)))
-        self._scale: tuple[float, float] | None = None  # (bits, error) of the whole set over the sample's
+        self._scale: tuple[float, float] | None = None  # (bits, error): the whole set's real figures over estimates
 
-    def _measure(self, codec: SectionCodec, values: np.ndarray, sens: Sensitivity) -> tuple[float, float]:
-        coded = codec.encode(values)
-        decoded = codec.decode(coded.payload, values.shape, coded.params, coded.raw_length)
-        return 8.0 * len(coded.payload), sens.error(self.section, values, decoded)
+    def _measure(self, codec: RateCodec, values: np.ndarray, sens: Sensitivity) -> tuple[float, float]:
+        estimate = codec.estimate(values)
+        return estimate.bits, sens.error(self.section, values, estimate.decoded)
 
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
-            codec = self.make(k)
-            if self._sample is None:
-                self._rungs[k] = Rung(codec, *self._measure(codec, self.values, self.sens))
-                return self._rungs[k]
-            values, sens = self._sample
             if self._scale is None:
-                preset = self.make(0)
-                whole = self._measure(preset, self.values, self.sens)
-                part = self._measure(preset, values, sens)
-                # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at
-                # k = 0: then the errors scale as the sensitivity weights do.
-                weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()),
-                                                                            1e-300)  # fmt: skip
-                self._scale = (whole[0] / max(part[0], 1.0),
-                               whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight)  # fmt: skip
+                self._scale = self._calibration()
+            values, sens = self._sample or (self.values, self.sens)
+            codec = self.make(k)
             bits, error = self._measure(codec, values, sens)
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
+
+    def _calibration(self) -> tuple[float, float]:
+        """(bits, error) of the whole set over the estimate's, at the preset's own rung (k = 0): the real encode of
+        the whole set over the estimate of the set, or of its sample."""
+        preset = self.make(0)
+        real = 8.0 * len(preset.encode(self.values).payload)
+        if self._sample is None:
+            return real / max(self._measure(preset, self.values, self.sens)[0], 1.0), 1.0
+        values, sens = self._sample
+        part = self._measure(preset, values, sens)
+        whole = self._measure(preset, self.values, self.sens)[1]
+        # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at k = 0:
+        # then the errors scale as the sensitivity weights do.
+        weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()), 1e-300)
+        return real / max(part[0], 1.0), whole / part[1] if part[1] > 0 and whole > 0 else weight
 
     def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
         """The rung minimising bits + mu * error (searched from ``start`` when not exhaustive)."""
@@ -131,7 +135,7 @@ class Ladder:
 class Choice:
     """Each section's codec, which Gaussians stay, each one's SH degree, and what the model predicts of them."""
 
-    codecs: dict[str, SectionCodec]
+    codecs: dict[str, RateCodec]
     keep: Tensor  # [N] bool
     degrees: Tensor | None  # [N] SH degree kept (None: every band)
     errors: dict[str, float]  # predicted growth of the fitting MSE: "codec", "sh_reduction"
