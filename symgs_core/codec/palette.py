@@ -16,7 +16,6 @@ same SH many times with different steps and only the quantisation depends on tho
 from __future__ import annotations
 
 import hashlib
-import math
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -402,36 +401,36 @@ class ShPaletteCodec:
             cls = layout.point_class[order[1:]]
             yield name, rank[layout.index], layout.points[order[1:]] >> cls[:, None, None], cls, with_classes
 
+    def _plan(self, layout: _Layout, degree: int) -> tuple[float, str, list[bool]]:
+        """The estimated bits of the smaller entry order, its name, and per band whether its channels go
+        decorrelated: each choice made on estimates, so that an encode codes one layout, not all eight."""
+        orders = list(self._orders(layout))
+        # The entries' tables are priced once: the two orders hold the same rows, and their statistics are alike.
+        _, _, stored, cls, with_classes = orders[0]
+        bands = [[sum(_band_bits(stored[:, s, :], cls, flag)) for flag in (False, True)] for s in band_slices(degree)]
+        entries = sum(min(b) for b in bands) + 32.0 * (1 + with_classes + degree * len(np.unique(cls)))
+        costs = {name: (table_bits(ranks[:, None]) if name == "use" else _first_use_bits(ranks))
+                 + (table_bits(cls[:, None]) if with_classes else 0.0) for name, ranks, _, cls, with_classes in orders}
+        order = min(costs, key=lambda name: costs[name])
+        return costs[order] + entries, order, [mixed < plain for plain, mixed in bands]
+
     def encode(self, values: np.ndarray) -> EncodedSection:
         layout = self._layout(values)
         degree = SH_DEGREES[values.shape[1]]
-        codings = []
-        for name, rows, stored, cls, with_classes in self._orders(layout):
-            indices = encode_table(rows[:, None]) if name == "use" else _encode_first_use(rows)
-            parts = [indices] + ([encode_table(cls[:, None])] if with_classes else [])
-            mixed = []
-            for s in band_slices(degree):
-                tables = [_band_tables(stored[:, s, :], cls, flag) for flag in (False, True)]
-                flag = sum(map(len, tables[1])) < sum(map(len, tables[0]))
-                parts += tables[flag]
-                mixed.append(flag)
-            params = {"size": len(stored) + 1, "steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
-            codings.append((join_parts(parts), {**params, "order": name, "classes": with_classes}))
-        payload, params = min(codings, key=lambda c: len(c[0]))
-        return EncodedSection(payload, _raw_length(values.shape), params)
+        _, order, mixed = self._plan(layout, degree)
+        name, ranks, stored, cls, with_classes = next(o for o in self._orders(layout) if o[0] == order)
+        parts = [encode_table(ranks[:, None]) if name == "use" else _encode_first_use(ranks)]
+        parts += [encode_table(cls[:, None])] if with_classes else []
+        for s, flag in zip(band_slices(degree), mixed):
+            parts += _band_tables(stored[:, s, :], cls, flag)
+        params = {"size": len(stored) + 1, "steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed,
+                  "order": name, "classes": with_classes}  # fmt: skip
+        return EncodedSection(join_parts(parts), _raw_length(values.shape), params)
 
     def estimate(self, values: np.ndarray) -> Estimate:
         layout = self._layout(values)
         degree = SH_DEGREES[values.shape[1]]
-        bits, entries = math.inf, None
-        for name, ranks, stored, cls, with_classes in self._orders(layout):
-            total = table_bits(ranks[:, None]) if name == "use" else _first_use_bits(ranks)
-            total += table_bits(cls[:, None]) if with_classes else 0.0
-            # The entries' tables are priced once: the two orders hold the same rows, and their statistics are alike.
-            if entries is None:
-                entries = sum(min(sum(_band_bits(stored[:, s, :], cls, flag)) for flag in (False, True))
-                              for s in band_slices(degree))  # fmt: skip
-            bits = min(bits, total + entries + 32.0 * (1 + with_classes + degree * len(np.unique(cls))))
+        bits = self._plan(layout, degree)[0]
         palette = np.zeros(layout.points.shape, dtype=np.float32)
         for band, step in zip(band_slices(degree), self.steps):
             palette[:, band, :] = layout.points[:, band, :].astype(np.float32) * np.float32(step)
