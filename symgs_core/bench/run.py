@@ -115,6 +115,7 @@ def _ours(scene: _Scene, config: CompressConfig, role: Role, say: Say) -> BenchR
         scene.name, method, role, "ok", scene.relative(path), preset=config.preset, mirrors=config.use_mirrors,
         budget_db=config.budget, floor_db=result.report.psnr_floor, bytes=len(result.archive),
         gaussians=len(decoded), encode_s=encode, decode_s=decode,
+        sections={part.name: part.bytes for part in result.report.sections},
     )  # fmt: skip
     return _figures(row, *scene.fidelity(decoded), scene.ply.stat().st_size)
 

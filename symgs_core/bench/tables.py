@@ -88,8 +88,30 @@ def rows_table(rows: list[BenchRow]) -> str:
     return "\n".join(lines) + "\n"
 
 
+SECTION_COLUMNS = ("means", "quats", "scales", "opacities", "sh_dc", "sh_degrees|sh_index", "sh_band_1", "sh_band_2",
+                   "sh_band_3", "header|bits")  # fmt: skip
+
+
+def sections_table(rows: list[BenchRow], preset: str = "balanced") -> str:
+    """Where our archive's bytes go, per scene, at ``preset`` (mirrors on where they ran): bytes per decoded Gaussian
+    and each part's share of the archive (the higher SH's index and each band apart)."""
+    names = [c.replace("|", " / ") for c in SECTION_COLUMNS]
+    lines = ["| scene | bytes | bytes per decoded Gaussian | " + " | ".join(names) + " |",
+             "|---|---:|---:|" + "---:|" * len(names)]  # fmt: skip
+    runs = [r for r in rows if r.ours and r.ok and r.role == "preset" and r.preset == preset and r.sections]
+    for scene in dict.fromkeys(r.scene for r in runs):
+        r = max((r for r in runs if r.scene == scene), key=lambda r: bool(r.mirrors))
+        sections = r.sections or {}
+        size = r.bytes or sum(sections.values())
+        shares = [sum(sections.get(part, 0) for part in column.split("|")) / size for column in SECTION_COLUMNS]
+        cells = " | ".join(f"{share:.0%}" if share else "-" for share in shares)
+        per = f"{r.bytes / r.gaussians:.2f}" if r.gaussians else "-"
+        lines.append(f"| {r.scene} | {size:,} | {per} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(rows: list[BenchRow]) -> str:
-    """The three tables, in that order, separated by blank lines (the order ``benchmarks/run_all.py`` reads)."""
+    """The four tables, in that order, separated by blank lines (the order ``benchmarks/run_all.py`` reads)."""
     note = (f"A claim holds on other cameras when our curve there reaches the peer's PSNR (less {TOLERANCE_DB} dB) "
             "in fewer bytes than the peer's file.")  # fmt: skip
-    return "\n".join([summary_table(rows), equal_table(rows), rows_table(rows), note]) + "\n"
+    return "\n".join([summary_table(rows), equal_table(rows), rows_table(rows), sections_table(rows), note]) + "\n"

@@ -328,6 +328,19 @@ def read_header(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> dict[s
     return _validate(data, limits)[0]
 
 
+def section_bytes(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> list[tuple[str, int]]:
+    """Where a valid archive's bytes are, in its order: ``header`` (the framing and the header), then each section,
+    those whose codec tells its parts (``parts``: the higher SH's index and bands) part by part. They add up to
+    ``len(data)``; nothing is decoded."""
+    _, _, sections = _validate(data, limits)
+    out = [("header", sections[0].start if sections else len(data))]
+    for s in sections:
+        parts = getattr(s.codec, "parts", None)
+        payload = bytes(memoryview(data)[s.start : s.start + s.length])
+        out += list(parts(payload, s.params).items()) if parts is not None else [(s.name, s.length)]
+    return out
+
+
 def _decode_section(data: bytes, s: _Section) -> np.ndarray:
     payload = bytes(memoryview(data)[s.start : s.start + s.length])
     try:

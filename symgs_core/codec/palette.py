@@ -453,6 +453,14 @@ class ShPaletteCodec:
         check_bands(params, degree, self.name)
         _check_raw(self.name, shape, raw_length)
 
+    def parts(self, payload: bytes, params: dict[str, Any]) -> dict[str, int]:
+        """Bytes of a checked payload's parts: the rows' index (with the entries' classes), then each band's entries."""
+        parts = [4 + len(p) for p in split_all(payload, self.name)]
+        head, degree = 2 if params.get("classes") else 1, len(params["steps"])
+        per_band = (len(parts) - head) // max(degree, 1)
+        bands = {f"sh_band_{b + 1}": sum(parts[head + b * per_band : head + (b + 1) * per_band]) for b in range(degree)}
+        return {"sh_index": sum(parts[:head])} | bands
+
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         n, k, _ = shape
         size, degree = params["size"], len(params["steps"])

@@ -531,6 +531,11 @@ class ShRestCodec:
         check_bands(params, {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]], self.name)
         _check_raw(self.name, shape, raw_length)
 
+    def parts(self, payload: bytes, params: dict[str, Any]) -> dict[str, int]:
+        """Bytes of a checked payload's parts: the Gaussians' degrees, then each band."""
+        parts = split_parts(payload, len(params["steps"]) + 1, self.name)
+        return {"sh_degrees": 4 + len(parts[0])} | {f"sh_band_{b}": 4 + len(p) for b, p in enumerate(parts[1:], 1)}
+
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
         n, k, _ = shape
         degree = len(params["steps"])

@@ -12,13 +12,13 @@ from pathlib import Path
 import torch
 
 from ..cameras import COORDINATE_CONVENTION, scene_bounds
-from ..codec import decode_archive, expand_archive
+from ..codec import decode_archive, expand_archive, section_bytes
 from ..codec.steps import QuantSteps
 from ..config import PRESETS, CompressConfig
 from ..devices import resolve_device
 from ..ply_header import PlyError
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
-from ..report import Cameras, GaussianCounts, Report
+from ..report import Cameras, GaussianCounts, Report, SectionBytes
 from ..scene import GaussianScene
 from ..views import check_photographs, dataset_views, evaluate, photographed_backdrop, self_supervised_views
 from .encode import Fitted, fit_codec, fitted_baseline, fixed_codec, rate_model, stages
@@ -212,6 +212,7 @@ def compress(
         levels=tuple(records),
         stages=tuple(stage_reports),
         codec=fitted.codec,
+        sections=tuple(SectionBytes(name, size) for name, size in section_bytes(archive)),
         fidelity=fidelity,
         fitting=fitting,
         psnr_input=psnr_input,

@@ -192,6 +192,7 @@ def test_bench_writes_bench_json_files_and_charts(tmp_path: Path, monkeypatch: p
             assert image.format == "PNG" and image.size == size, name
     tables = (out / "bench.md").read_text()
     assert "| tiny | float16 ply + zstd |" in tables and "| tiny | symgs no mirrors | balanced |" in tables
+    assert sum(mine.sections.values()) == mine.bytes and f"| tiny | {mine.bytes:,} |" in tables
 
 
 def test_a_rows_psnr_is_the_one_its_report_states(tmp_path: Path) -> None:

@@ -255,3 +255,22 @@ def test_colour_channels_that_move_together_are_stored_decorrelated() -> None:
     assert coded.params["decorrelate"] == [True, True]
     out, _ = _roundtrip(ShRestCodec((0.01, 0.01)), rest)
     assert np.abs(out - rest).max() <= 0.005 + 1e-6
+
+
+@pytest.mark.parametrize("palette", [0, 64])
+def test_an_archive_tells_where_its_bytes_are_each_sh_band_apart(palette: int) -> None:
+    from dataclasses import replace
+
+    from symgs_core.codec import section_bytes
+
+    scene = _random_scene(400, 2, seed=3)
+    bits = torch.zeros(400, 0, dtype=torch.bool)
+    writer = replace(QuantSteps(), sh_palette=palette).archive_codec(8.0, "test-parts")
+    data = encode_archive(ArchiveContents(scene, [], bits, {}), codec=writer)
+    parts = section_bytes(data)
+    index = "sh_index" if palette else "sh_degrees"
+    names = ["header", "means", "quats", "scales", "opacities", "sh_dc", index, "sh_band_1", "sh_band_2", "bits"]
+    assert [name for name, _ in parts] == names
+    assert sum(size for _, size in parts) == len(data) and all(size > 0 for _, size in parts)
+    lossless = section_bytes(encode_archive(ArchiveContents(scene, [], bits, {})))
+    assert [name for name, _ in lossless][-2:] == ["sh_rest", "bits"]
