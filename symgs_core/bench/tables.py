@@ -105,7 +105,7 @@ def sections_table(rows: list[BenchRow], preset: str = "balanced") -> str:
         size = r.bytes or sum(sections.values())
         shares = [sum(sections.get(part, 0) for part in column.split("|")) / size for column in SECTION_COLUMNS]
         cells = " | ".join(f"{share:.0%}" if share else "-" for share in shares)
-        per = f"{r.bytes / r.gaussians:.2f}" if r.gaussians else "-"
+        per = f"{size / r.gaussians:.2f}" if r.gaussians else "-"
         lines.append(f"| {r.scene} | {size:,} | {per} | {cells} |")
     return "\n".join(lines) + "\n"
 
