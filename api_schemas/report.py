@@ -89,8 +89,8 @@ class CodecReport(BaseModel):
 
 
 class SectionBytes(BaseModel):
-    name: str = Field(description="header, means, quats, scales, opacities, sh_dc, bits, or the higher SH's parts: "
-                      "sh_degrees or sh_index, then sh_band_1 .. sh_band_3 (or sh_rest whole)")
+    name: str = Field(description="header, means, quats, scales, opacities, sh_dc, bits, classes, or the higher "
+                      "SH's parts: sh_degrees or sh_index, then sh_band_1 .. sh_band_3 (or sh_rest whole)")
     bytes: int
 
 

@@ -112,7 +112,7 @@ class CodecReport:
 @dataclass(frozen=True)
 class SectionBytes:
     """Bytes of one part of the archive: ``header`` (its framing and header), a section (``means``, ``quats``,
-    ``scales``, ``opacities``, ``sh_dc``, ``bits``), or the higher SH's parts: each Gaussian's degree
+    ``scales``, ``opacities``, ``sh_dc``, ``bits``, ``classes``), or the higher SH's parts: each Gaussian's degree
     (``sh_degrees``) or palette index (``sh_index``), then each band (``sh_band_1`` ..), or ``sh_rest`` whole."""
 
     name: str

@@ -89,7 +89,7 @@ def rows_table(rows: list[BenchRow]) -> str:
 
 
 SECTION_COLUMNS = ("means", "quats", "scales", "opacities", "sh_dc", "sh_degrees|sh_index", "sh_band_1", "sh_band_2",
-                   "sh_band_3", "header|bits")  # fmt: skip
+                   "sh_band_3", "header|bits|classes")  # fmt: skip
 
 
 def sections_table(rows: list[BenchRow], preset: str = "balanced") -> str:

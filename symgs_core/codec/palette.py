@@ -334,7 +334,8 @@ class ShPaletteCodec:
 
     ``steps`` lists the grid step of band 1, 2, 3 for the palette's entries; a scene of lower degree uses the first.
     ``weights``: the render weight of the rows; entries that little of the image depends on then take coarser steps
-    (``entry_classes``), their class stored once per entry.
+    (``entry_classes``), their class stored once per entry. The Gaussians' step classes play no part: an entry
+    serves Gaussians of every class.
     """
 
     size: int
@@ -414,7 +415,7 @@ class ShPaletteCodec:
         order = min(costs, key=lambda name: costs[name])
         return costs[order] + entries, order, [mixed < plain for plain, mixed in bands]
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
         layout = self._layout(values)
         degree = SH_DEGREES[values.shape[1]]
         _, order, mixed = self._plan(layout, degree)
@@ -427,7 +428,7 @@ class ShPaletteCodec:
                   "order": name, "classes": with_classes}  # fmt: skip
         return EncodedSection(join_parts(parts), _raw_length(values.shape), params)
 
-    def estimate(self, values: np.ndarray) -> Estimate:
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
         layout = self._layout(values)
         degree = SH_DEGREES[values.shape[1]]
         bits = self._plan(layout, degree)[0]
@@ -461,7 +462,8 @@ class ShPaletteCodec:
         bands = {f"sh_band_{b + 1}": sum(parts[head + b * per_band : head + (b + 1) * per_band]) for b in range(degree)}
         return {"sh_index": sum(parts[:head])} | bands
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         n, k, _ = shape
         size, degree = params["size"], len(params["steps"])
         parts = split_all(payload, self.name)

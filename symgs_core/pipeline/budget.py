@@ -78,24 +78,26 @@ class Ladder:
     """
 
     def __init__(self, section: str, values: np.ndarray, make: Callable[[int], RateCodec], sens: Sensitivity,
-                 *, exhaustive: bool = True, sample: np.ndarray | None = None) -> None:  # fmt: skip
-        self.section, self.values, self.make, self.sens = section, values, make, sens
+                 *, classes: np.ndarray | None = None, exhaustive: bool = True,
+                 sample: np.ndarray | None = None) -> None:  # fmt: skip
+        self.section, self.values, self.make, self.sens, self.classes = section, values, make, sens, classes
         self.exhaustive = exhaustive
         self._rungs: dict[int, Rung] = {}
-        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)))
+        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)),
+                                                    None if classes is None else classes[sample])  # fmt: skip
         self._scale: tuple[float, float] | None = None  # (bits, error): the whole set's real figures over estimates
 
-    def _measure(self, codec: RateCodec, values: np.ndarray, sens: Sensitivity) -> tuple[float, float]:
-        estimate = codec.estimate(values)
+    def _measure(self, codec: RateCodec, values: np.ndarray, sens: Sensitivity,
+                 classes: np.ndarray | None) -> tuple[float, float]:  # fmt: skip
+        estimate = codec.estimate(values, classes=classes)
         return estimate.bits, sens.error(self.section, values, estimate.decoded)
 
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
             if self._scale is None:
                 self._scale = self._calibration()
-            values, sens = self._sample or (self.values, self.sens)
             codec = self.make(k)
-            bits, error = self._measure(codec, values, sens)
+            bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
@@ -103,12 +105,12 @@ class Ladder:
         """(bits, error) of the whole set over the estimate's, at the preset's own rung (k = 0): the real encode of
         the whole set over the estimate of the set, or of its sample."""
         preset = self.make(0)
-        real = 8.0 * len(preset.encode(self.values).payload)
+        real = 8.0 * len(preset.encode(self.values, classes=self.classes).payload)
         if self._sample is None:
-            return real / max(self._measure(preset, self.values, self.sens)[0], 1.0), 1.0
-        values, sens = self._sample
-        part = self._measure(preset, values, sens)
-        whole = self._measure(preset, self.values, self.sens)[1]
+            return real / max(self._measure(preset, self.values, self.sens, self.classes)[0], 1.0), 1.0
+        values, sens, classes = self._sample
+        part = self._measure(preset, values, sens, classes)
+        whole = self._measure(preset, self.values, self.sens, self.classes)[1]
         # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at k = 0:
         # then the errors scale as the sensitivity weights do.
         weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()), 1e-300)
@@ -157,15 +159,21 @@ def palette_start(sh_rest: Tensor) -> int:
 
 
 class RateDistortion:
-    """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``."""
+    """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``; each Gaussian
+    quantised in its step class (``Sensitivity.step_classes``: ``classes`` [N] int64, in the input's order)."""
 
     def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps) -> None:
         stored = stored.detach().to(HOST)  # the ladders' encodes run where the entropy coders do
         self.extent = extent_of(stored)
-        cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy())
-        order = coding_order(stored, torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST), cells)
+        self.classes = sens.step_classes()
+        cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy(),
+                           self.classes.numpy().astype(np.uint8))  # fmt: skip
+        bits = torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST)
+        order = coding_order(stored, bits, cells, self.classes)
         self.order = order
         self.stored, self.sens = stored.select(order), sens.select(order)
+        ordered = self.classes[order].numpy().astype(np.uint8)
+        coded = ordered if ordered.any() else None
         self.start = start
         arrays = {k: v.contiguous().numpy() for k, v in self.stored.tensors().items()}
         n = len(self.stored)
@@ -173,7 +181,8 @@ class RateDistortion:
         sample = np.linspace(0, n - 1, RATE_SAMPLE).round().astype(np.int64) if n > RATE_SAMPLE else None
         s, x = start, self.extent
         step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
-        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, sample=sample, **kw)  # noqa: E731
+        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, classes=coded, sample=sample,
+                                                 **kw)  # noqa: E731
         self.ladders: dict[str, list[Ladder]] = {
             "means": [ladder("means", lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
             "quats": [ladder("quats", lambda k: RotationCodec(step(s.rotation)(k)))],
@@ -181,16 +190,16 @@ class RateDistortion:
             "opacities": [ladder("opacities", lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
             "sh_dc": [ladder("sh_dc", lambda k: ShDcCodec(step(s.dc)(k)))],
         }  # fmt: skip
-        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample)
+        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample, coded)
         self._at: dict[tuple[str, int], int] = {}
         self._energy, self._cost_err, self._nonzero = self._truncation()
 
-    def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None) -> list[Ladder]:
-        """Per coefficient, and, with higher bands, as a palette (weighted by each row's sensitivity, so rows the
-        renders hardly see take coarser entry steps)."""
+    def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None, classes: np.ndarray | None) -> list[Ladder]:
+        """Per coefficient (in step classes), and, with higher bands, as a palette (weighted by each row's
+        sensitivity, so rows the renders hardly see take coarser entry steps)."""
         bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
-        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, exhaustive=False,
-                          sample=sample)]  # fmt: skip
+        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, classes=classes,
+                          exhaustive=False, sample=sample)]  # fmt: skip
         if self.stored.sh_degree:
             size = palette_start(self.stored.sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
