@@ -26,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds for SOG (writing and decoding back)")
     p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
     p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
+    p.add_argument("--trained", type=Path, nargs="*", default=None,
+                   help="those of the scenes that are as a trainer wrote them (float32); the others are taken as "
+                   "decoded from quantised containers, and the two are reported apart")
     # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.
     p.add_argument("--iterations", type=int, help="optimisation steps per mirror level")
     p.add_argument("--max-levels", type=int, help="cap on mirror levels")
@@ -75,6 +78,9 @@ def _bench(args: argparse.Namespace) -> int:
     check_seed("--seed", args.seed)
     check_seed("--other-seed", args.other_seed)
     check_output("--out", args.out, folder=True)
+    if args.trained is not None and not set(args.trained) <= set(args.scenes):
+        raise CliError("--trained names scenes that are not among the scenes benched")
+    trained = None if args.trained is None else [scene in set(args.trained) for scene in args.scenes]
     overrides = {
         "iterations": args.iterations, "max_levels": args.max_levels, "train_views": args.train_views,
         "fit_views": args.fit_views, "eval_views": args.eval_views, "resolution": args.resolution,
@@ -93,7 +99,7 @@ def _bench(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     try:
-        doc = run_bench(args.scenes, args.out, settings, say=lambda m: print(m, flush=True))
+        doc = run_bench(args.scenes, args.out, settings, say=lambda m: print(m, flush=True), trained=trained)
     except ValueError as exc:  # PlyError and bad settings name the problem
         raise CliError(str(exc)) from exc
     from symgs_core.bench.rows import BenchRow
