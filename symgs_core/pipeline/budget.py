@@ -77,9 +77,10 @@ class Ladder:
     where it last stood, looking two rungs ahead before it stops.
 
     A rung's bits are an estimate (``codec.estimate``: its symbols' statistics, no stream written) scaled by the
-    ratio of one real encode of the whole set to the estimate at the preset's own rung (k = 0): one encode per
-    section, whatever the number of rungs visited. With ``sample`` (indices of the set, in coding order) a rung's
-    bits and error are the sample's, scaled by the same ratios of the whole set to the sample at k = 0.
+    ratio of one real encode to the estimate at the preset's own rung (k = 0): one encode per section, whatever the
+    number of rungs visited. With ``sample`` (indices of the set, in coding order) a rung's bits and error are the
+    sample's, scaled by the ratios of the whole set's estimates to the sample's at k = 0, and the encode is the
+    sample's.
     """
 
     def __init__(self, section: str, values: np.ndarray, make: Callable[[int], RateCodec], sens: Sensitivity,
@@ -110,19 +111,21 @@ class Ladder:
         return self._rungs[k]
 
     def _calibration(self) -> tuple[float, float]:
-        """(bits, error) of the whole set over the estimate's, at the preset's own rung (k = 0): the real encode of
-        the whole set over the estimate of the set, or of its sample."""
+        """(bits, error) of the whole set over the estimates, at the preset's own rung (k = 0): the real encode over
+        the estimate of what the rungs measure (the set, or its sample), and with a sample, the whole set's estimate
+        over the sample's (one real encode of the sample, not of a million Gaussians)."""
         preset = self.make(0)
-        real = 8.0 * len(preset.encode(self.values, classes=self.classes).payload)
-        if self._sample is None:
-            return real / max(self._measure(preset, self.values, self.sens, self.classes)[0], 1.0), 1.0
-        values, sens, classes = self._sample
+        values, sens, classes = self._sample or (self.values, self.sens, self.classes)
+        real = 8.0 * len(preset.encode(values, classes=classes).payload)
         part = self._measure(preset, values, sens, classes)
-        whole = self._measure(preset, self.values, self.sens, self.classes)[1]
+        bits = real / max(part[0], 1.0)
+        if self._sample is None:
+            return bits, 1.0
+        whole = self._measure(preset, self.values, self.sens, self.classes)
         # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at k = 0:
         # then the errors scale as the sensitivity weights do.
         weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()), 1e-300)
-        return real / max(part[0], 1.0), whole / part[1] if part[1] > 0 and whole > 0 else weight
+        return bits * whole[0] / max(part[0], 1.0), whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight
 
     def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
         """The rung minimising bits + mu * error: over ``RUNGS`` when exhaustive, then downhill below them; else
