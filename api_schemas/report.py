@@ -98,6 +98,12 @@ class CodecReport(BaseModel):
     tries: int = Field(description="renders the step search took")
 
 
+class SectionBytes(BaseModel):
+    name: str = Field(description="header, means, quats, scales, opacities, sh_dc, bits, classes, or the higher "
+                      "SH's parts: sh_degrees or sh_index, then sh_band_1 .. sh_band_3 (or sh_rest whole)")
+    bytes: int
+
+
 class GaussianCounts(BaseModel):
     input: int
     stored: int
@@ -150,6 +156,9 @@ class Report(BaseModel):
     levels: list[LevelReport]
     stages: list[StageReport]
     codec: CodecReport
+    sections: list[SectionBytes] = Field(default_factory=list,
+                                         description="where the archive's bytes are, in its order; they add up to "
+                                         "output_bytes (empty in reports of earlier versions)")
     fidelity: Fidelity = Field(description="the decoded archive on the evaluation cameras, which fitted nothing")
     fitting: Fidelity = Field(description="the same on the fitting cameras, what the decisions saw")
     psnr_input: float | None = Field(description="the input on the evaluation cameras (null: renders of itself)")

@@ -122,6 +122,16 @@ class CodecReport:
 
 
 @dataclass(frozen=True)
+class SectionBytes:
+    """Bytes of one part of the archive: ``header`` (its framing and header), a section (``means``, ``quats``,
+    ``scales``, ``opacities``, ``sh_dc``, ``bits``, ``classes``), or the higher SH's parts: each Gaussian's degree
+    (``sh_degrees``) or palette index (``sh_index``), then each band (``sh_band_1`` ..), or ``sh_rest`` whole."""
+
+    name: str
+    bytes: int
+
+
+@dataclass(frozen=True)
 class GaussianCounts:
     input: int
     stored: int
@@ -141,6 +151,7 @@ class Report:
     levels: tuple[LevelReport, ...]
     stages: tuple[StageReport, ...]
     codec: CodecReport
+    sections: tuple[SectionBytes, ...]  # where the archive's bytes are, in its order; they add up to output_bytes
     fidelity: Fidelity  # the decoded archive on the evaluation cameras: the figure a user reads
     fitting: Fidelity  # the same on the fitting cameras, what the decisions saw
     psnr_input: float  # the input on the evaluation cameras (+inf against renders of itself)

@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds for SOG (writing and decoding back)")
     p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
     p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
+    p.add_argument("--trained", type=Path, nargs="*", default=None,
+                   help="those of the scenes that are as a trainer wrote them (float32); the others are taken as "
+                   "decoded from quantised containers, and the two are reported apart")
     # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.
     add_job_options(p, BENCH_SETTINGS)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto")
@@ -70,6 +73,9 @@ def _bench(args: argparse.Namespace) -> int:
         raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
     check_seed("--other-seed", args.other_seed)
     check_output("--out", args.out, folder=True)
+    if args.trained is not None and not set(args.trained) <= set(args.scenes):
+        raise CliError("--trained names scenes that are not among the scenes benched")
+    trained = None if args.trained is None else [scene in set(args.trained) for scene in args.scenes]
     overrides = {**job_overrides(args, BENCH_SETTINGS), "device": args.device}
     exe, why = _splat_transform(args)
     peers = () if args.no_peers else tuple(p for p in PEERS if not (args.no_sog and p.slow))
@@ -84,7 +90,7 @@ def _bench(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     try:
-        doc = run_bench(args.scenes, args.out, settings, say=lambda m: print(m, flush=True))
+        doc = run_bench(args.scenes, args.out, settings, say=lambda m: print(m, flush=True), trained=trained)
     except ValueError as exc:  # PlyError and bad settings name the problem
         raise CliError(str(exc)) from exc
     from symgs_core.bench.rows import BenchRow

@@ -41,6 +41,8 @@ class BenchRow:
     encode_s: float | None = None  # ours: the whole pipeline; peers: the tool's run, process start included
     decode_s: float | None = None  # to PLY bytes (peers: the tool's run writing a PLY)
     reason: str = ""
+    trained: bool | None = None  # the scene as a trainer wrote it (float32), or decoded from a quantised container
+    sections: dict[str, int] | None = None  # ours: the archive's bytes by part (``Report.sections``)
     # Peers only: our curve ("symgs", or "symgs no mirrors" when mirrors did not run) at this row's PSNR.
     equal_psnr_bytes: float | None = None  # our bytes at this peer's psnr_db, interpolated (never extrapolated)
     equal_psnr_ratio: float | None = None  # bytes / equal_psnr_bytes: > 1 means ours is smaller at equal PSNR

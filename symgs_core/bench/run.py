@@ -115,6 +115,7 @@ def _ours(scene: _Scene, config: CompressConfig, role: Role, say: Say) -> BenchR
         scene.name, method, role, "ok", scene.relative(path), preset=config.preset, mirrors=config.use_mirrors,
         budget_db=config.budget, floor_db=result.report.psnr_floor, bytes=len(result.archive),
         gaussians=len(decoded), encode_s=encode, decode_s=decode,
+        sections={part.name: part.bytes for part in result.report.sections},
     )  # fmt: skip
     return _figures(row, *scene.fidelity(decoded), scene.ply.stat().st_size)
 
@@ -242,9 +243,10 @@ def equal_fidelity(rows: list[BenchRow], scene: str, method: str = OURS) -> None
             r.claim_holds_other = needed is not None and needed < r.bytes
 
 
-def bench_scene(ply: Path, out: Path, settings: BenchSettings, say: Say | None = None, name: str | None = None
-                ) -> list[BenchRow]:  # fmt: skip
-    """Every row for one scene; outputs go to ``out/files/<scene>/``."""
+def bench_scene(ply: Path, out: Path, settings: BenchSettings, say: Say | None = None, name: str | None = None,
+                trained: bool | None = None) -> list[BenchRow]:  # fmt: skip
+    """Every row for one scene; outputs go to ``out/files/<scene>/``. ``trained``: whether the scene is as a trainer
+    wrote it, or decoded from a quantised container (None: not said); every row carries it."""
     from ..devices import resolve_device
     from ..ply import load_scene
 
@@ -282,4 +284,6 @@ def bench_scene(ply: Path, out: Path, settings: BenchSettings, say: Say | None =
             say(_line(rows[-1]))
     _sweep(scene, rows, settings, say)
     equal_fidelity(rows, name, settings.curve_method)
+    for row in rows:
+        row.trained = trained
     return rows

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ def _names(scenes: list[Path]) -> list[str]:
 
 
 def document(rows: list[BenchRow], scenes: list[Path], names: list[str], settings: BenchSettings,
-             info: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+             info: dict[str, Any], trained: list[bool | None]) -> dict[str, Any]:  # fmt: skip
     """The content of ``bench.json``."""
     base = settings.config("balanced")
     found = claims(rows)
@@ -53,7 +53,8 @@ def document(rows: list[BenchRow], scenes: list[Path], names: list[str], setting
                       "distances": list(DISTANCES), "note": "an independent rig: other directions"},
         },  # fmt: skip
         # The file's name, not where it lay: bench.json travels between machines.
-        "scenes": [{"scene": name, "input": ply.name, "bytes": ply.stat().st_size} for ply, name in zip(scenes, names)],
+        "scenes": [{"scene": name, "input": ply.name, "bytes": ply.stat().st_size, "trained": kind}
+                   for ply, name, kind in zip(scenes, names, trained)],  # fmt: skip
         "rows": [r.as_json() for r in rows],
         "claims": found,
         "claims_failing_on_other_cameras": [c for c in found if c["holds_on_other_cameras"] is False],
@@ -76,13 +77,15 @@ def write_charts(rows: list[BenchRow], input_bytes: dict[str, int], folder: Path
     return [folder / name for name in made]
 
 
-def run_bench(scenes: list[Path], out: Path, settings: BenchSettings,
-              say: Callable[[str], None] | None = None) -> dict[str, Any]:  # fmt: skip
-    """Bench every scene into ``out``; returns the ``bench.json`` document (also written)."""
+def run_bench(scenes: list[Path], out: Path, settings: BenchSettings, say: Callable[[str], None] | None = None,
+              trained: Sequence[bool | None] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Bench every scene into ``out``; returns the ``bench.json`` document (also written). ``trained``: per scene,
+    whether it is as a trainer wrote it or decoded from a quantised container (None: not said)."""
     from .tables import markdown
 
     out.mkdir(parents=True, exist_ok=True)
     names = _names(scenes)
+    kinds: list[bool | None] = list(trained) if trained is not None else [None] * len(scenes)
     tool = None
     if settings.splat_transform is not None:
         from .splat_transform import version
@@ -90,11 +93,11 @@ def run_bench(scenes: list[Path], out: Path, settings: BenchSettings,
         tool = version(settings.splat_transform)
     info = stamp.stamp(tool)
     rows: list[BenchRow] = []
-    for ply, name in zip(scenes, names):
-        rows += bench_scene(ply, out, settings, say, name)
+    for ply, name, kind in zip(scenes, names, kinds):
+        rows += bench_scene(ply, out, settings, say, name, kind)
     info["finished"] = stamp.stamp(tool)["date"]
     info["load_at_end"] = stamp.machine()["load"]
-    doc = document(rows, scenes, names, settings, info)
+    doc = document(rows, scenes, names, settings, info, kinds)
     (out / "bench.json").write_text(json.dumps(doc, indent=1))
     (out / "bench.md").write_text(markdown(rows))
     write_charts(rows, {name: ply.stat().st_size for ply, name in zip(scenes, names)}, out / "charts")

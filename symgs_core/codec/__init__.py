@@ -10,6 +10,7 @@ from .archive import (
     expand_archive,
     expanded_count,
     read_header,
+    section_bytes,
 )
 from .container import FORMAT_VERSION, MAGIC
 from .errors import ArchiveError, ArchiveErrorCode
@@ -49,5 +50,6 @@ __all__ = [
     "read_header",
     "register_archive_codec",
     "register_section_codec",
+    "section_bytes",
     "section_codec",
 ]

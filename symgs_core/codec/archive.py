@@ -7,9 +7,11 @@ Header (JSON object, format version 1; every key required, no others):
     codec                   str, the archive codec that wrote the file (informational: sections name their own)
     planes                  [{"normal": [x, y, z], "offset": g}], level 0 first; unit normals, finite
     sections                [{"name", "codec", "offset", "length", "raw_length", "crc32", "params"}], exactly
-                            ``SECTION_NAMES`` in that order; offsets count from the end of the header
+                            ``SECTION_NAMES`` in that order (versions 1 and 2: without ``classes``); offsets count
+                            from the end of the header
     meta                    object, the caller's metadata, returned as given
-Shapes follow from the header alone: attributes [N, ...] as in ``GaussianScene``, bits [N, len(planes)].
+Shapes follow from the header alone: attributes [N, ...] as in ``GaussianScene``, bits [N, len(planes)], classes [N].
+The bits are decoded first, then the classes, then each attribute with the classes (``codec.classes``).
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ from ..cameras import COORDINATE_CONVENTION
 from ..mirror import Plane, expand_planes
 from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
+from .classes import MAX_CLASS
 from .errors import ArchiveError
-from .registry import SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
+from .registry import ATTRIBUTE_NAMES, SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
 from .section import MAX_MAGNITUDE, SectionCodec
 
 _HEADER_KEYS = {"count", "sh_degree", "coordinate_convention", "codec", "planes", "sections", "meta"}
@@ -82,12 +85,14 @@ def decode_memory(stored: int, expanded: int, sh_degree: int, levels: int) -> in
 
 @dataclass
 class ArchiveContents:
-    """Everything an archive holds. bits [|S|, L+1] bool, one column per plane (level 0 first)."""
+    """Everything an archive holds. bits [|S|, L+1] bool, one column per plane (level 0 first); classes [|S|] int,
+    each stored Gaussian's step class in 0..``MAX_CLASS`` (None: class 0 throughout)."""
 
     stored: GaussianScene
     planes: list[Plane]
     bits: Tensor
     meta: dict[str, Any] = field(default_factory=dict)
+    classes: Tensor | None = None
 
     def __post_init__(self) -> None:
         expected = (len(self.stored), len(self.planes))
@@ -100,15 +105,27 @@ class ArchiveContents:
             raise ValueError(f"planes must be Plane objects, got {[type(p).__name__ for p in self.planes]}")
         if not isinstance(self.meta, dict):
             raise ValueError(f"meta must be a dict, got {type(self.meta).__name__}")
+        classes = self.classes
+        if classes is not None:
+            n, kind = len(self.stored), classes.dtype
+            if tuple(classes.shape) != (n,) or kind.is_floating_point or kind.is_complex or kind == torch.bool:
+                raise ValueError(f"classes must be integers [{n}], got {kind} of shape {tuple(classes.shape)}")
+            if n and not 0 <= int(classes.min()) <= int(classes.max()) <= MAX_CLASS:
+                raise ValueError(f"classes must lie in 0..{MAX_CLASS}, got {int(classes.min())}..{int(classes.max())}")
 
     def permuted(self, perm: Tensor) -> ArchiveContents:
-        """The same archive with the stored set and its bit rows in the order ``perm`` [|S|] (see ``coding_order``)."""
-        return ArchiveContents(self.stored.select(perm), list(self.planes), self.bits[perm], dict(self.meta))
+        """The same archive with the stored set, its bit rows and classes in the order ``perm`` [|S|] (see
+        ``coding_order``)."""
+        classes = None if self.classes is None else self.classes[perm.to(self.classes.device)]
+        return ArchiveContents(self.stored.select(perm), list(self.planes), self.bits[perm], dict(self.meta), classes)
 
 
 def _section_arrays(contents: ArchiveContents) -> dict[str, np.ndarray]:
     arrays = {k: v.detach().cpu().contiguous().numpy() for k, v in contents.stored.tensors().items()}
     arrays["bits"] = contents.bits.detach().cpu().contiguous().numpy()
+    classes = contents.classes
+    arrays["classes"] = np.zeros(len(contents.stored), np.uint8) if classes is None else classes.cpu().numpy().astype(
+        np.uint8)
     return arrays
 
 
@@ -141,8 +158,9 @@ def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lo
     if not _in_range(offsets).all():
         raise ValueError(f"plane offsets must be within +-{MAX_MAGNITUDE:g}, got {offsets.tolist()}")
     table, payloads, offset = [], [], 0
+    classes = arrays["classes"] if arrays["classes"].any() else None
     for name in SECTION_NAMES:
-        coded = codecs[name].encode(arrays[name])
+        coded = codecs[name].encode(arrays[name], classes=classes if name in ATTRIBUTE_NAMES else None)
         table.append(
             {
                 "name": name,
@@ -238,11 +256,10 @@ class _Section:
     params: dict[str, Any]
 
 
-def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimits) -> list[_Section]:
-    if not isinstance(value, list) or [s.get("name") if isinstance(s, dict) else None for s in value] != list(
-        SECTION_NAMES
-    ):
-        raise _bad(f"sections must list exactly {list(SECTION_NAMES)} in that order")
+def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimits, version: int) -> list[_Section]:
+    names = list(SECTION_NAMES) if version >= 3 else [name for name in SECTION_NAMES if name != "classes"]
+    if not isinstance(value, list) or [s.get("name") if isinstance(s, dict) else None for s in value] != names:
+        raise _bad(f"sections must list exactly {names} in that order")
     sections = []
     for entry in value:
         _keys(entry, _SECTION_KEYS, f"section {entry['name']!r}")
@@ -285,7 +302,7 @@ def _layout(sections: list[_Section], body_start: int, size: int) -> list[_Secti
 
 def _validate(data: bytes, limits: DecodeLimits) -> tuple[dict[str, Any], list[Plane], list[_Section]]:
     """Everything but the payloads' contents: prefix, header schema, limits, codecs, layout, checksums."""
-    header, body_start = container.unframe(data, limits.max_header_bytes)
+    header, body_start, version = container.unframe(data, limits.max_header_bytes)
     _keys(header, _HEADER_KEYS, "header")
     n = _count(header["count"], "count")
     if n > limits.max_gaussians:
@@ -312,8 +329,9 @@ def _validate(data: bytes, limits: DecodeLimits) -> tuple[dict[str, Any], list[P
         "sh_dc": (n, 3),
         "sh_rest": (n, SH_REST_COUNT[degree], 3),
         "bits": (n, len(planes)),
+        "classes": (n,),
     }
-    sections = _layout(_sections(header["sections"], shapes, limits), body_start, len(data))
+    sections = _layout(_sections(header["sections"], shapes, limits, version), body_start, len(data))
     crcs = {e["name"]: e["crc32"] for e in header["sections"]}
     view = memoryview(data)
     for s in sections:
@@ -328,15 +346,28 @@ def read_header(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> dict[s
     return _validate(data, limits)[0]
 
 
-def _decode_section(data: bytes, s: _Section) -> np.ndarray:
+def section_bytes(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> list[tuple[str, int]]:
+    """Where a valid archive's bytes are, in its order: ``header`` (the framing and the header), then each section,
+    those whose codec tells its parts (``parts``: the higher SH's index and bands) part by part. They add up to
+    ``len(data)``; nothing is decoded."""
+    _, _, sections = _validate(data, limits)
+    out = [("header", sections[0].start if sections else len(data))]
+    for s in sections:
+        parts = getattr(s.codec, "parts", None)
+        payload = bytes(memoryview(data)[s.start : s.start + s.length])
+        out += list(parts(payload, s.params).items()) if parts is not None else [(s.name, s.length)]
+    return out
+
+
+def _decode_section(data: bytes, s: _Section, classes: np.ndarray | None = None) -> np.ndarray:
     payload = bytes(memoryview(data)[s.start : s.start + s.length])
     try:
-        values = s.codec.decode(payload, s.shape, s.params, s.raw_length)
+        values = s.codec.decode(payload, s.shape, s.params, s.raw_length, classes=classes)
     except ArchiveError:
         raise
     except (ValueError, IndexError, OverflowError, TypeError) as exc:  # a codec tripped on hostile bytes
         raise ArchiveError("corrupt_section", f"section {s.name!r}: {exc}") from exc
-    want = np.float32 if s.codec.kind == "float32" else np.bool_
+    want = {"float32": np.float32, "bool": np.bool_, "uint8": np.uint8}[s.codec.kind]
     if values.shape != s.shape or values.dtype != want:
         raise ArchiveError(
             "corrupt_section",
@@ -380,14 +411,19 @@ def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> Arc
     """Inverse of ``encode_archive``; ArchiveError (with ``.code``) for any file that is not a valid archive.
 
     Everything the header says is validated, and every section's checksum verified, before any section is decoded;
-    the level bits are decoded first, and what they expand to checked (``DecodeLimits``) before any attribute is.
+    the level bits are decoded first, and what they expand to checked (``DecodeLimits``) before any attribute is; then
+    the step classes (class 0 throughout in archives of versions 1 and 2, which hold none), which every attribute
+    section reads.
     """
     header, planes, sections = _validate(data, limits)
-    bits = torch.from_numpy(_decode_section(data, next(s for s in sections if s.name == "bits")))
+    by_name = {s.name: s for s in sections}
+    bits = torch.from_numpy(_decode_section(data, by_name["bits"]))
     _check_expansion(bits, header["sh_degree"], len(data), limits)
-    arrays = {s.name: _decode_section(data, s) for s in sections if s.name != "bits"}
+    classes = _decode_section(data, by_name["classes"]) if "classes" in by_name else None
+    given = classes if classes is not None and classes.any() else None
+    arrays = {name: _decode_section(data, by_name[name], given) for name in ATTRIBUTE_NAMES}
     stored = GaussianScene(**{k: torch.from_numpy(v) for k, v in arrays.items()})
-    return ArchiveContents(stored, planes, bits, header["meta"])
+    return ArchiveContents(stored, planes, bits, header["meta"], None if classes is None else torch.from_numpy(classes))
 
 
 def expand_archive(contents: ArchiveContents) -> GaussianScene:

@@ -11,7 +11,8 @@
 
 Section offsets in the header count from the first byte after the header, so the header never depends on its own
 length. The header is compressed since version 2: its JSON repeats keys per section, and zstd takes a 1.5 kB header
-to about 0.7 kB, which is 0.2% of a 30,000-Gaussian archive. This module only frames and unframes; it knows nothing
+to about 0.7 kB, which is 0.2% of a 30,000-Gaussian archive. Version 3 adds a section, the stored Gaussians' step
+classes (``classes``), which every quantising section reads. This module only frames and unframes; it knows nothing
 of Gaussians.
 """
 
@@ -28,8 +29,8 @@ from .errors import ArchiveError
 from .section import zstd_compress, zstd_decompress_exact
 
 MAGIC = b"\x89SYMGS\r\n"
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)  # 1: the header is plain JSON; 2: a zstd frame of it
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)  # 1: the header is plain JSON; 2: a zstd frame of it; 3: and the step classes' section
 _PREFIX = struct.Struct("<8sIII")
 PREFIX_SIZE = _PREFIX.size  # 20
 
@@ -76,11 +77,11 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return dict(pairs)
 
 
-def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
+def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int, int]:
     """Check magic, version, header size and CRC, and parse the header strictly.
 
-    Returns the header object and the offset of the first section byte. Nothing is allocated beyond the header,
-    whose size ``max_header_bytes`` bounds.
+    Returns the header object, the offset of the first section byte and the format version. Nothing is allocated
+    beyond the header, whose size ``max_header_bytes`` bounds.
     """
     view = memoryview(data)
     if len(view) < len(MAGIC):
@@ -102,7 +103,7 @@ def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
     text: memoryview | bytes = view[PREFIX_SIZE:end]
     if crc32(text) != header_crc:
         raise ArchiveError("bad_checksum", f"header CRC32 {crc32(text):08x}, prefix says {header_crc:08x}")
-    if version == 2:
+    if version >= 2:
         text = _inflate(bytes(text), max_header_bytes)
     try:
         header = json.loads(
@@ -114,4 +115,4 @@ def unframe(data: bytes, max_header_bytes: int) -> tuple[dict[str, Any], int]:
         raise ArchiveError("bad_header", f"header is not UTF-8 JSON ({exc})") from exc
     if not isinstance(header, dict):
         raise ArchiveError("bad_header", f"header is a JSON {type(header).__name__}, expected an object")
-    return header, end
+    return header, end, version

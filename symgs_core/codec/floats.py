@@ -73,7 +73,7 @@ class FloatZstd:
         """One name per stored precision, so a name alone tells a reader how to decode."""
         return f"f{np.dtype(self.dtype).itemsize * 8}-zstd"
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
         if values.dtype != np.float32:
             raise ValueError(f"{self.name} encodes float32 attributes, got {values.dtype}")
         if values.ndim < 1:
@@ -104,7 +104,8 @@ class FloatZstd:
                 "bad_header", f"{self.name}: raw length {raw_length} for shape {shape}, expected {expected}"
             )
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         raw = zstd_decompress_exact(payload, raw_length, self.name)
         n = shape[0]
         c = int(np.prod(shape[1:], dtype=np.int64))

@@ -183,7 +183,7 @@ class MaskZstd:
     name: str = field(default="mask-zstd", init=False)
     kind: SectionKind = field(default="bool", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
         raw = encode_masks(values, self.level)
         return EncodedSection(zstd_compress(raw, self.level), len(raw), {})
 
@@ -199,7 +199,8 @@ class MaskZstd:
                 f"(between {levels} and {max_raw_length(n, levels)})",
             )
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         n, levels = shape
         return decode_masks(zstd_decompress_exact(payload, raw_length, self.name), n, levels)
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..zorder import AXIS_BITS, deinterleave, interleave
-from .entropy import decode_table, encode_table
+from .entropy import decode_table, encode_table, table_bits
 from .errors import ArchiveError
 from .masks import pack_uint, read_varints, unpack_uint, write_varints
 from .section import join_parts, split_all
@@ -47,15 +47,20 @@ def _classes(gaps: np.ndarray) -> np.ndarray:
     return out
 
 
-def encode_codes(codes: np.ndarray) -> bytes:
-    """The stream of Morton codes [N] int64 (>= 0), in their order; compact when they rise in few runs."""
+def _gaps(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gaps [N] between Morton codes [N] in their order, where a run starts [N] bool, and each gap's class [N]."""
     codes = codes.astype(np.int64)
-    n = len(codes)
     gaps = np.diff(codes, prepend=np.int64(0))
-    starts = np.ones(n, dtype=bool)
+    starts = np.ones(len(codes), dtype=bool)
     starts[1:] = gaps[1:] < 0
     classes = _classes(np.where(starts, 0, gaps))
     classes[starts] = RUN
+    return gaps, starts, classes
+
+
+def encode_codes(codes: np.ndarray) -> bytes:
+    """The stream of Morton codes [N] int64 (>= 0), in their order; compact when they rise in few runs."""
+    gaps, starts, classes = _gaps(codes)
     parts = [
         encode_table(classes[:, None]),
         write_varints(np.array([starts.sum()])) + codes[starts].astype("<i8").tobytes(),
@@ -65,6 +70,16 @@ def encode_codes(codes: np.ndarray) -> bytes:
         if chosen.any():
             parts.append(pack_uint(gaps[chosen] - (np.int64(1) << (width - 1)), width - 1))
     return join_parts(parts)
+
+
+def codes_bits(codes: np.ndarray) -> float:
+    """About the bits of ``encode_codes(codes)``: the classes' table estimated (``table_bits``), the rest exact."""
+    _, starts, classes = _gaps(codes)
+    widths = np.bincount(classes[(classes >= 2) & (classes < RUN)], minlength=RUN)
+    packed = sum((int(count) * (width - 1) + 7) // 8 for width, count in enumerate(widths) if count)
+    runs = int(starts.sum())
+    head = len(write_varints(np.array([runs]))) + 8 * runs + 4 * (2 + int((widths > 0).sum()))
+    return table_bits(classes[:, None]) + 8.0 * (packed + head)
 
 
 def decode_codes(payload: bytes, n: int, what: str) -> np.ndarray:

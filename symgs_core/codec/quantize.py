@@ -26,16 +26,18 @@ formats) are quantised on that grid, exactly, or on whole multiples of its step 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
-from .entropy import decode_table, encode_table
+from .classes import decode_groups, encode_groups, groups_bits, multipliers
+from .entropy import CODING_LEVEL, ESTIMATE_LEVEL, decode_table, encode_table, table_bits
 from .errors import ArchiveError
-from .morton import decode_codes, deinterleave, encode_codes, fits, interleave
-from .section import MAX_MAGNITUDE, EncodedSection, SectionKind, join_parts, split_parts
+from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, interleave
+from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
@@ -89,10 +91,11 @@ def _finite(values: np.ndarray, codec: str) -> np.ndarray:
     return values.astype(np.float64)
 
 
-def _grid(values: np.ndarray, origin: np.ndarray | float, step: float, codec: str) -> np.ndarray:
+def _grid(values: np.ndarray, origin: np.ndarray | float, step: float | np.ndarray, codec: str) -> np.ndarray:
+    """Cells of ``values`` on a grid of ``step`` (one, or one per row broadcast against them) from ``origin``."""
     q = np.round((values - origin) / step)
     if q.size and float(np.abs(q).max()) >= MAX_LEVELS:
-        raise ValueError(f"{codec}: step {step} puts values {float(np.abs(q).max()):.0f} cells from the origin")
+        raise ValueError(f"{codec}: step {np.min(step):g} puts values {float(np.abs(q).max()):.0f} cells from origin")
     return q.astype(np.int64)
 
 
@@ -215,10 +218,37 @@ def _correlate(d: np.ndarray) -> np.ndarray:
     return np.stack([d[..., 1] + d[..., 0], d[..., 0], d[..., 2] + d[..., 0]], axis=-1)
 
 
-def _smaller(q: np.ndarray, shape: tuple[int, int]) -> tuple[bytes, bool]:
-    """The smaller coding of RGB symbols ``q`` [..., 3] as a table of ``shape``: as they are, or decorrelated."""
-    plain, mixed = encode_table(q.reshape(shape)), encode_table(_decorrelate(q).reshape(shape))
+def _table(rows: np.ndarray, flat: bool) -> np.ndarray:
+    """Symbol rows [M, ..., 3] as an entropy table: one row each, or every symbol in one column (``flat``)."""
+    return rows.reshape(-1, 1) if flat else rows.reshape(len(rows), -1)
+
+
+def _smaller(q: np.ndarray, classes: np.ndarray | None, flat: bool = False) -> tuple[bytes, bool]:
+    """The smaller coding of RGB symbol rows ``q`` [N, ..., 3], a table per class (``_table``): as they are, or
+    decorrelated."""
+    code = lambda rows: encode_table(_table(rows, flat))  # noqa: E731
+    plain, mixed = encode_groups(q, classes, code), encode_groups(_decorrelate(q), classes, code)
     return (mixed, True) if len(mixed) < len(plain) else (plain, False)
+
+
+def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, flat: bool = False,
+                  level: int = ESTIMATE_LEVEL) -> float:  # fmt: skip
+    """About the bits of ``_smaller(q, classes, flat)``'s coding (its zstd streams at ``level``)."""
+    bits = lambda rows: table_bits(_table(rows, flat), level)  # noqa: E731
+    return min(groups_bits(q, classes, bits), groups_bits(_decorrelate(q), classes, bits))
+
+
+def _read(codec: str, c: int) -> Callable[[bytes, int], np.ndarray]:
+    """A reader of one class's table of ``c`` columns (``classes.decode_groups``)."""
+    return lambda part, m: _symbols(part, m, c, codec)
+
+
+def _grid_bits(q: np.ndarray, classes: np.ndarray | None) -> float:
+    return groups_bits(q, classes, table_bits)
+
+
+def _grid_payload(q: np.ndarray, classes: np.ndarray | None) -> bytes:
+    return encode_groups(q, classes, encode_table)
 
 
 def _flag(params: dict[str, Any], key: str, codec: str) -> None:
@@ -242,23 +272,32 @@ class PositionCodec:
     name: str = field(default="q-pos", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def _quantise(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    def _quantise(self, values: np.ndarray, classes: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
         x = _finite(values, self.name)
         step, origin = _position_grid(values, self.step) or (self.step, x.min(axis=0) if len(x) else np.zeros(3))
-        return _grid(x, origin, step, self.name), np.asarray(origin, dtype=np.float64), float(step)
+        cells = _grid(x, origin, step * multipliers(classes, len(x))[:, None], self.name)
+        return cells, np.asarray(origin, dtype=np.float64), float(step)
 
-    def cells(self, values: np.ndarray) -> np.ndarray:
-        """The grid cells [N, 3] int64 ``encode`` puts ``values`` [N, 3] in (``order.coding_order`` sorts by them)."""
-        return self._quantise(values)[0]
+    def cells(self, values: np.ndarray, classes: np.ndarray | None = None) -> np.ndarray:
+        """The grid cells [N, 3] int64 ``encode`` puts ``values`` [N, 3] in, each on its class's grid
+        (``order.coding_order`` sorts by them)."""
+        return self._quantise(values, classes)[0]
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
-        q, origin, step = self._quantise(values)
-        payload, morton = encode_table(q), False
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        q, origin, step = self._quantise(values, classes)
+        payload, morton = _grid_payload(q, classes), False
         if fits(q):
-            gaps = encode_codes(interleave(q))
+            gaps = encode_groups(q, classes, lambda cells: encode_codes(interleave(cells)))
             payload, morton = (gaps, True) if len(gaps) < len(payload) else (payload, False)
         params = {"origin": [float(o) for o in origin], "step": step, "morton": morton}
         return EncodedSection(payload, _raw_length(values.shape), params)
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        q, origin, step = self._quantise(values, classes)
+        bits = _grid_bits(q, classes)
+        if fits(q):
+            bits = min(bits, groups_bits(q, classes, lambda cells: codes_bits(interleave(cells))))
+        return Estimate(bits, _positions(q, origin, step * multipliers(classes, len(q))[:, None]))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         # Archives written before Morton gap coding carry no "morton" flag: their positions are a table.
@@ -273,12 +312,20 @@ class PositionCodec:
             _origin(value, self.name)
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        n = shape[0]
         if params.get("morton"):
-            q = deinterleave(decode_codes(payload, shape[0], self.name))
+            q = decode_groups(payload, classes, n, lambda part, m: deinterleave(decode_codes(part, m, self.name)),
+                              self.name)  # fmt: skip
         else:
-            q = _symbols(payload, shape[0], 3, self.name)
-        return (np.asarray(params["origin"]) + q * params["step"]).astype(np.float32)
+            q = decode_groups(payload, classes, n, _read(self.name, 3), self.name)
+        return _positions(q, params["origin"], params["step"] * multipliers(classes, n)[:, None])
+
+
+def _positions(q: np.ndarray, origin: Any, step: float | np.ndarray) -> np.ndarray:
+    """Positions [N, 3] float32 of grid cells ``q`` [N, 3] (``origin`` [3]; ``step`` one, or [N, 1])."""
+    return (np.asarray(origin) + q * step).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -289,37 +336,55 @@ class RotationCodec:
     name: str = field(default="q-rot", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _table(self, values: np.ndarray, classes: np.ndarray | None) -> np.ndarray:
+        """[N, 4]: each quaternion's largest component's index and the other three's grid cells."""
         q = _finite(values, self.name)
         norm = np.linalg.norm(q, axis=1, keepdims=True)
         q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
         largest = np.abs(q).argmax(axis=1)
         q *= np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
         others = q[~np.eye(4, dtype=bool)[largest]].reshape(len(q), 3)
-        table = np.concatenate([largest[:, None], _grid(others, 0.0, self.step, self.name)], axis=1)
-        return EncodedSection(encode_table(table), _raw_length(values.shape), {"step": float(self.step)})
+        steps = self.step * multipliers(classes, len(q))[:, None]
+        return np.concatenate([largest[:, None], _grid(others, 0.0, steps, self.name)], axis=1)
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        payload = _grid_payload(self._table(values, classes), classes)
+        return EncodedSection(payload, _raw_length(values.shape), {"step": float(self.step)})
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        table = self._table(values, classes)
+        steps = self.step * multipliers(classes, len(table))[:, None]
+        return Estimate(_grid_bits(table, classes), _quaternions(table, steps))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"step"}, self.name)
         _step(params, self.name)
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         n = shape[0]
-        table = _symbols(payload, n, 4, self.name)
+        table = decode_groups(payload, classes, n, _read(self.name, 4), self.name)
         largest = table[:, 0]
         if n and (largest.min() < 0 or largest.max() > 3):
             raise ArchiveError("corrupt_section", f"{self.name}: largest-component index outside 0..3")
-        others = np.clip(table[:, 1:] * params["step"], -SQRT1_2, SQRT1_2)
-        squares = (others**2).sum(axis=1)
-        # Rounding can push the three past unit length: rescale them so the quaternion stays unit.
-        scale = np.where(squares > 1.0, 1.0 / np.sqrt(np.maximum(squares, 1e-30)), 1.0)
-        others *= scale[:, None]
-        q = np.empty((n, 4))
-        mask = np.eye(4, dtype=bool)[largest]
-        q[~mask] = others.reshape(-1)
-        q[mask] = np.sqrt(np.clip(1.0 - (others**2).sum(axis=1), 0.0, 1.0))
-        return q.astype(np.float32)
+        return _quaternions(table, params["step"] * multipliers(classes, n)[:, None])
+
+
+def _quaternions(table: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """Unit quaternions [N, 4] float32 of a ``RotationCodec`` table [N, 4] (largest index in 0..3; ``step`` one, or
+    [N, 1])."""
+    n, largest = len(table), table[:, 0]
+    others = np.clip(table[:, 1:] * step, -SQRT1_2, SQRT1_2)
+    squares = (others**2).sum(axis=1)
+    # Rounding can push the three past unit length: rescale them so the quaternion stays unit.
+    scale = np.where(squares > 1.0, 1.0 / np.sqrt(np.maximum(squares, 1e-30)), 1.0)
+    others *= scale[:, None]
+    q = np.empty((n, 4))
+    mask = np.eye(4, dtype=bool)[largest]
+    q[~mask] = others.reshape(-1)
+    q[mask] = np.sqrt(np.clip(1.0 - (others**2).sum(axis=1), 0.0, 1.0))
+    return q.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -330,11 +395,20 @@ class ScalarGridCodec:
     name: str = field(default="q-grid", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray, classes: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray]:
+        """Cells [N, C], origin, step, and each Gaussian's step [N, 1]."""
         x = _finite(values, self.name).reshape(len(values), -1)
         step, origin = native_grid(x, self.step) or (self.step, float(x.min()) if x.size else 0.0)
-        q = _grid(x, origin, step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"origin": origin, "step": step})
+        steps = step * multipliers(classes, len(x))[:, None]
+        return _grid(x, origin, steps, self.name), origin, step, steps
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        q, origin, step, _ = self._quantise(values, classes)
+        return EncodedSection(_grid_payload(q, classes), _raw_length(values.shape), {"origin": origin, "step": step})
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        q, origin, _, steps = self._quantise(values, classes)
+        return Estimate(_grid_bits(q, classes), _on_grid(q, origin, steps).reshape(values.shape))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step"}, self.name)
@@ -342,10 +416,16 @@ class ScalarGridCodec:
         _origin(params.get("origin"), self.name)
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        c = int(np.prod(shape[1:], dtype=np.int64))
-        q = _symbols(payload, shape[0], c, self.name)
-        return (params["origin"] + q * params["step"]).astype(np.float32).reshape(shape)
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        n, c = shape[0], int(np.prod(shape[1:], dtype=np.int64))
+        q = decode_groups(payload, classes, n, _read(self.name, c), self.name)
+        return _on_grid(q, params["origin"], params["step"] * multipliers(classes, n)[:, None]).reshape(shape)
+
+
+def _on_grid(q: np.ndarray, origin: float, step: float | np.ndarray) -> np.ndarray:
+    """float32 values of grid cells ``q`` [N, ...] (``step`` one, or one per row [N, 1])."""
+    return (origin + q * step).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -356,11 +436,20 @@ class OpacityCodec:
     name: str = field(default="q-alpha", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray, classes: np.ndarray | None) -> tuple[np.ndarray, float, np.ndarray]:
+        """Alpha cells [N, 1], the step, and each Gaussian's step [N]."""
         alpha = 1.0 / (1.0 + np.exp(-_finite(values, self.name)))
         step, _ = native_grid(alpha, self.step, through_zero=True) or (self.step, 0.0)
-        q = _grid(alpha[:, None], 0.0, step, self.name)
-        return EncodedSection(encode_table(q), _raw_length(values.shape), {"step": step})
+        steps = step * multipliers(classes, len(alpha))
+        return _grid(alpha[:, None], 0.0, steps[:, None], self.name), step, steps
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        q, step, _ = self._quantise(values, classes)
+        return EncodedSection(_grid_payload(q, classes), _raw_length(values.shape), {"step": step})
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        q, _, steps = self._quantise(values, classes)
+        return Estimate(_grid_bits(q, classes), _logits(q[:, 0], steps))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"step"}, self.name)
@@ -368,11 +457,18 @@ class OpacityCodec:
             raise ArchiveError("bad_header", f"{self.name}: step {params['step']} outside (0, 1]")
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        alpha = _symbols(payload, shape[0], 1, self.name)[:, 0] * params["step"]
-        lo, hi = 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MIN)), 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MAX))
-        alpha = np.clip(alpha, lo, hi)
-        return np.log(alpha / (1.0 - alpha)).astype(np.float32)
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        n = shape[0]
+        q = decode_groups(payload, classes, n, _read(self.name, 1), self.name)[:, 0]
+        return _logits(q, params["step"] * multipliers(classes, n))
+
+
+def _logits(q: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """Opacity logits [N] float32 of alpha cells ``q`` [N] (``step`` one, or [N]), within what the PLY reader keeps."""
+    lo, hi = 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MIN)), 1.0 / (1.0 + math.exp(-OPACITY_LOGIT_MAX))
+    alpha = np.clip(q * step, lo, hi)
+    return np.log(alpha / (1.0 - alpha)).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -383,12 +479,22 @@ class ShDcCodec:
     name: str = field(default="q-dc", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray, classes: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray]:
+        """Cells [N, 3], origin, step, and each Gaussian's step [N, 1]."""
         x = _finite(values, self.name)
         step, origin = native_grid(x, self.step) or (self.step, 0.0)
-        payload, mixed = _smaller(_grid(x, origin, step, self.name), (len(x), 3))
+        steps = step * multipliers(classes, len(x))[:, None]
+        return _grid(x, origin, steps, self.name), origin, step, steps
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        q, origin, step, _ = self._quantise(values, classes)
+        payload, mixed = _smaller(q, classes)
         params = {"origin": origin, "step": step, "decorrelate": mixed}
         return EncodedSection(payload, _raw_length(values.shape), params)
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        q, origin, _, steps = self._quantise(values, classes)
+        return Estimate(_smaller_bits(q, classes), _on_grid(q, origin, steps))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         _keys(params, {"origin", "step", "decorrelate"}, self.name)
@@ -397,10 +503,12 @@ class ShDcCodec:
         _flag(params, "decorrelate", self.name)
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
-        q = _symbols(payload, shape[0], 3, self.name)
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        n = shape[0]
+        q = decode_groups(payload, classes, n, _read(self.name, 3), self.name)
         q = _correlate(q) if params["decorrelate"] else q
-        return (params["origin"] + q * params["step"]).astype(np.float32)
+        return _on_grid(q, params["origin"], params["step"] * multipliers(classes, n)[:, None])
 
 
 def check_bands(params: dict[str, Any], degree: int, codec: str) -> None:
@@ -429,22 +537,39 @@ class ShRestCodec:
     name: str = field(default="q-sh", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def _quantise(self, values: np.ndarray, classes: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray]:
+        """Each band's symbols [N, width, 3] and each Gaussian's degree [N]: its highest band with a non-zero one."""
         n, k, _ = values.shape
         degree = {0: 0, 3: 1, 8: 2, 15: 3}[k]
         x = _finite(values, self.name)
         if len(self.steps) < degree:
             raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
-        bands = [_grid(x[:, s, :], 0.0, st, self.name) for s, st in zip(band_slices(degree), self.steps)]
+        scale = multipliers(classes, n)[:, None, None]
+        bands = [_grid(x[:, s, :], 0.0, st * scale, self.name) for s, st in zip(band_slices(degree), self.steps)]
         present = np.stack([b.any(axis=(1, 2)) for b in bands], axis=1) if bands else np.zeros((n, 0), dtype=bool)
-        # Degree of each Gaussian: the highest band with a non-zero symbol (0 when none).
         per = np.zeros(n, dtype=np.int64)
         if degree:
             per = np.where(present.any(axis=1), degree - np.argmax(present[:, ::-1], axis=1), 0)
+        return bands, per
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        bands, per = self._quantise(values, classes)
+        bits = table_bits(per[:, None]) + 32.0 * (len(bands) + 1)
+        decoded = np.zeros(values.shape, dtype=np.float32)
+        for lvl, (band, rows, step) in enumerate(zip(bands, band_slices(len(bands)), self.steps), start=1):
+            keep = per >= lvl
+            # zstd's matches find much of what a flat column of every coefficient holds: coded at its own level
+            bits += _smaller_bits(band[keep], None if classes is None else classes[keep], True, CODING_LEVEL)
+            decoded[:, rows, :] = _sh_values(band, step, classes)
+        return Estimate(bits, decoded)
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+        bands, per = self._quantise(values, classes)
+        degree = len(bands)
         parts, mixed = [encode_table(per[:, None])], []
         for lvl, band in enumerate(bands, start=1):
-            kept = band[per >= lvl]
-            coded, flag = _smaller(kept, (kept.size, 1))
+            keep = per >= lvl
+            coded, flag = _smaller(band[keep], None if classes is None else classes[keep], True)
             parts.append(coded)
             mixed.append(flag)
         payload = join_parts(parts)
@@ -456,7 +581,13 @@ class ShRestCodec:
         check_bands(params, {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]], self.name)
         _check_raw(self.name, shape, raw_length)
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def parts(self, payload: bytes, params: dict[str, Any]) -> dict[str, int]:
+        """Bytes of a checked payload's parts: the Gaussians' degrees, then each band."""
+        parts = split_parts(payload, len(params["steps"]) + 1, self.name)
+        return {"sh_degrees": 4 + len(parts[0])} | {f"sh_band_{b}": 4 + len(p) for b, p in enumerate(parts[1:], 1)}
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         n, k, _ = shape
         degree = len(params["steps"])
         parts = split_parts(payload, degree + 1, self.name)
@@ -466,12 +597,20 @@ class ShRestCodec:
         out = np.zeros((n, k, 3), dtype=np.float32)
         for lvl, (rows, step) in enumerate(zip(band_slices(degree), params["steps"]), start=1):
             keep = per >= lvl
-            width = (rows.stop - rows.start) * 3
-            q = _symbols(parts[lvl], int(keep.sum()) * width, 1, self.name).reshape(-1, rows.stop - rows.start, 3)
-            q = _correlate(q) if params["decorrelate"][lvl - 1] else q
-            values = q.astype(np.float32) * np.float32(step)
+            width = rows.stop - rows.start
+            kept = None if classes is None else classes[keep]
+            read = lambda part, m, w=width: _symbols(part, m * w * 3, 1, self.name).reshape(m, w, 3)  # noqa: E731
+            q = decode_groups(parts[lvl], kept, int(keep.sum()), read, self.name)
+            values = _sh_values(_correlate(q) if params["decorrelate"][lvl - 1] else q, step, kept)
             if len(values) == n:  # every Gaussian keeps this band: a slice, not a masked scatter
                 out[:, rows, :] = values
             else:
                 out[keep, rows, :] = values
         return out
+
+
+def _sh_values(q: np.ndarray, step: float, classes: np.ndarray | None) -> np.ndarray:
+    """float32 coefficients of one band's symbols [M, width, 3] on ``step`` times each row's 2^class."""
+    if classes is not None:
+        q = q << classes.astype(np.int64)[:, None, None]
+    return q.astype(np.float32) * np.float32(step)

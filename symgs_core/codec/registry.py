@@ -11,14 +11,18 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from .classes import CLASSES
 from .errors import ArchiveError
 from .floats import FLOAT16, FLOAT32
 from .masks import MASKS
 from .section import SectionCodec, SectionKind
 
-# Every archive holds these sections, in this order; ``bits`` is the level bit matrix, the others are attributes.
-SECTION_NAMES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest", "bits")
-SECTION_KINDS: dict[str, SectionKind] = {**{name: "float32" for name in SECTION_NAMES[:-1]}, "bits": "bool"}
+# Every archive holds these sections, in this order: the attributes, the level bit matrix (``bits``) and the stored
+# Gaussians' step classes (``classes``), which archives of format versions 1 and 2 do not hold (all class 0).
+ATTRIBUTE_NAMES = ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest")
+SECTION_NAMES = (*ATTRIBUTE_NAMES, "bits", "classes")
+SECTION_KINDS: dict[str, SectionKind] = {**{name: "float32" for name in ATTRIBUTE_NAMES}, "bits": "bool",
+                                         "classes": "uint8"}  # fmt: skip
 
 _SECTION_CODECS: dict[str, SectionCodec] = {}
 _ARCHIVE_CODECS: dict[str, ArchiveCodec] = {}
@@ -29,8 +33,8 @@ def register_section_codec(codec: SectionCodec) -> None:
     known = _SECTION_CODECS.get(codec.name)
     if known is not None and type(known) is not type(codec):
         raise ValueError(f"section codec name {codec.name!r} is already taken by {type(known).__name__}")
-    if codec.kind not in ("float32", "bool"):
-        raise ValueError(f"section codec {codec.name!r} has kind {codec.kind!r}, expected 'float32' or 'bool'")
+    if codec.kind not in ("float32", "bool", "uint8"):
+        raise ValueError(f"section codec {codec.name!r} has kind {codec.kind!r}, expected 'float32', 'bool' or 'uint8'")
     _SECTION_CODECS.setdefault(codec.name, codec)
 
 
@@ -94,6 +98,6 @@ def section_codec(name: str, section: str) -> SectionCodec:
 
 
 # Bit-exact float32: the reference every lossy codec is measured against.
-register_archive_codec("lossless", {name: FLOAT32 for name in SECTION_NAMES[:-1]} | {"bits": MASKS})
+register_archive_codec("lossless", {name: FLOAT32 for name in ATTRIBUTE_NAMES} | {"bits": MASKS, "classes": CLASSES})
 # float16 + zstd: about half the size of "lossless" with no quantiser to tune; rounds every attribute.
-register_archive_codec("float16", {name: FLOAT16 for name in SECTION_NAMES[:-1]} | {"bits": MASKS})
+register_archive_codec("float16", {name: FLOAT16 for name in ATTRIBUTE_NAMES} | {"bits": MASKS, "classes": CLASSES})

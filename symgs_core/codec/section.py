@@ -1,10 +1,11 @@
 """What a section codec is, and the bounded zstandard framing the built-in codecs share.
 
-A section codec turns one array (a Gaussian attribute, or the level bit matrix) into a payload and back. Its ``name``
-is written into the archive's section table and is the only thing a reader looks up, so ``decode`` must depend on
-nothing but the payload, the shape the header implies, the codec's ``params`` (JSON, written beside the section)
-and ``raw_length``. ``check`` runs for every section before any payload is touched: it rejects parameters and sizes
-that cannot be right, so decoding never allocates more than the header, already bounded by the reader's limits,
+A section codec turns one array (a Gaussian attribute, the level bit matrix, or the step classes) into a payload and
+back. Its ``name`` is written into the archive's section table and is the only thing a reader looks up, so
+``decode`` must depend on nothing but the payload, the shape the header implies, the codec's ``params`` (JSON,
+written beside the section), ``raw_length`` and the stored Gaussians' step classes (``classes``: their own section,
+decoded first). ``check`` runs for every section before any payload is touched: it rejects parameters and sizes that
+cannot be right, so decoding never allocates more than the header, already bounded by the reader's limits,
 announced.
 """
 
@@ -21,7 +22,7 @@ import zstandard
 
 from .errors import ArchiveError
 
-SectionKind = Literal["float32", "bool"]
+SectionKind = Literal["float32", "bool", "uint8"]
 # Every attribute value an archive holds, and every plane offset, lies within +-MAX_MAGNITUDE: then float32 sums and
 # products of a few of them stay finite (reflections through every level, grid origins plus steps), so a decoded
 # scene is always finite. Writers refuse anything beyond, and readers refuse archives that decode beyond it.
@@ -37,8 +38,21 @@ class EncodedSection:
     params: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """What ``encode`` then ``decode`` would give, without writing the bytes: the payload's bits, estimated from the
+    symbols' statistics (``entropy.table_bits``), and the decoded values [N, ...], exactly."""
+
+    bits: float
+    decoded: np.ndarray
+
+
 class SectionCodec(Protocol):
-    """One way to store a section. ``kind``: what ``decode`` returns (float32 values or a bool matrix)."""
+    """One way to store a section. ``kind``: what ``decode`` returns (float32 values, a bool matrix, or uint8 classes).
+
+    ``classes`` [N] uint8: each stored Gaussian's step class, its steps 2^class times the section's (``classes``);
+    None: class 0 throughout. A codec that quantises nothing ignores them, and so does the classes' own codec.
+    """
 
     @property
     def name(self) -> str: ...
@@ -46,7 +60,7 @@ class SectionCodec(Protocol):
     @property
     def kind(self) -> SectionKind: ...
 
-    def encode(self, values: np.ndarray) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
         """``values`` [N, ...] (float32 for attributes, bool for the bit matrix) -> payload; ValueError if unfit."""
         ...
 
@@ -54,8 +68,17 @@ class SectionCodec(Protocol):
         """Raise ArchiveError("bad_header") unless ``params`` and ``raw_length`` can describe an array of ``shape``."""
         ...
 
-    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> np.ndarray:
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """The array of ``shape``; ArchiveError("corrupt_section") when the payload disagrees. Runs after ``check``."""
+        ...
+
+
+class RateCodec(SectionCodec, Protocol):
+    """A section codec whose rate can be had without coding: the quantisers a rate model walks (``pipeline.budget``)."""
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        """``values`` as ``encode`` takes them -> their estimated bits and what ``decode`` would return."""
         ...
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 from typing import cast
 
 from ..report import Steps
+from .classes import CLASSES
 from .masks import MASKS
 from .palette import RowWeights, ShPaletteCodec
 from .quantize import OpacityCodec, PositionCodec, RotationCodec, ScalarGridCodec, ShDcCodec, ShRestCodec
@@ -68,6 +69,7 @@ class QuantSteps:
             if self.sh_palette > 0
             else ShRestCodec(self.sh),
             "bits": MASKS,
+            "classes": CLASSES,
         }
 
     def archive_codec(self, extent: float, name: str = "quantized") -> ArchiveCodec:

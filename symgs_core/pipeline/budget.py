@@ -1,16 +1,16 @@
 """The codec that spends the PSNR budget: the fewest bytes whose predicted error stays within what the floor allows.
 
 Each section has a ladder of quantisers: its step from 1/8 to 32 times the preset's, by sqrt 2 (higher SH also as a
-palette of vectors, ``codec.palette``, at the same steps). A rung's bytes are a real encode of the section; its error
-is the sensitivity-weighted squared error of its decode (``sensitivity``), a prediction of the fitting renders'
-error. Entropy-coded quantisers trade one bit per coded component for a quarter of the error, so a section's bits
-fall convexly as its error grows: at a price ``mu`` (bits per unit of squared error) each section's best rung
-minimises bits + mu * error by itself, and one bisection on ``mu`` spends the allowed error, wherever it buys the
-most bytes. At the same price a Gaussian's highest SH bands go when their error costs less than their bits are worth
-(model no more than the scene needs); Gaussians the renders hardly miss are ranked here and removed as far as the
-renders allow (``encode``).
+palette of vectors, ``codec.palette``, at the same steps). A rung's bytes are estimated from its symbols (calibrated
+by one real encode per section, ``Ladder``); its error is the sensitivity-weighted squared error of what it decodes
+to (``sensitivity``), a prediction of the fitting renders' error. Entropy-coded quantisers trade one bit per coded
+component for a quarter of the error, so a section's bits fall convexly as its error grows: at a price ``mu`` (bits
+per unit of squared error) each section's best rung minimises bits + mu * error by itself, and one bisection on
+``mu`` spends the allowed error, wherever it buys the most bytes. At the same price a Gaussian's highest SH bands go
+when their error costs less than their bits are worth (model no more than the scene needs); Gaussians the renders
+hardly miss are ranked here and removed as far as the renders allow (``encode``).
 
-Rungs are evaluated lazily and kept, so moving ``mu`` costs a few encodes, and the calibration (``choose`` again
+Rungs are evaluated lazily and kept, so moving ``mu`` costs a few estimates, and the calibration (``choose`` again
 with the allowed error rescaled by what real renders measured, see ``encode``) costs none.
 """
 
@@ -35,13 +35,18 @@ from ..codec.quantize import (
     ShRestCodec,
     band_slices,
 )
-from ..codec.section import SectionCodec
+from ..codec.section import RateCodec, SectionCodec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..scene import GaussianScene
 from .sensitivity import Sensitivity
 
-RUNGS = range(-6, 11)  # a ladder's steps: 2^(k/2) times the preset's, 1/8 .. 32
+RUNGS = range(-6, 11)  # the rungs every exhaustive ladder prices: steps 2^(k/2) times the preset's, 1/8 .. 32
+# Below them a ladder walks down while finer steps pay, to 2^-16 of the preset's step (about what float32 holds): a
+# budget that asks for more than RUNGS reach gets finer quantisers, not a float32 archive. Measured on kacytran with
+# the preset high's steps: budget 0.01 dB 197 kB (56.5 dB on the fitting cameras), 0.003 dB 1,550 kB float32 when
+# the ladders stopped at 1/8.
+LOWEST = -32
 _EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette holds every row exactly
 _PALETTE = 1 << 14  # the k-means palette size otherwise
 _MU_STEPS = 48  # bisection steps on the price (log scale)
@@ -58,7 +63,7 @@ def extent_of(stored: GaussianScene) -> float:
 
 @dataclass(frozen=True)
 class Rung:
-    codec: SectionCodec
+    codec: RateCodec
     bits: float
     error: float
 
@@ -71,57 +76,67 @@ class Ladder:
     are searched over every rung (``exhaustive``); the higher SH, whose encodes cost the most, walks downhill from
     where it last stood, looking two rungs ahead before it stops.
 
-    With ``sample`` (indices of the set, in coding order) a rung's bytes and error are those of the sample's encode,
-    scaled by the ratio that the whole set's encode at the preset's own rung (k = 0) has to the sample's there: one
-    whole encode per section, whatever the number of rungs visited.
+    A rung's bits are an estimate (``codec.estimate``: its symbols' statistics, no stream written) scaled by the
+    ratio of one real encode to the estimate at the preset's own rung (k = 0): one encode per section, whatever the
+    number of rungs visited. With ``sample`` (indices of the set, in coding order) a rung's bits and error are the
+    sample's, scaled by the ratios of the whole set's estimates to the sample's at k = 0, and the encode is the
+    sample's.
     """
 
-    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], SectionCodec], sens: Sensitivity,
-                 *, exhaustive: bool = True, sample: np.ndarray | None = None) -> None:  # fmt: skip
-        self.section, self.values, self.make, self.sens = section, values, make, sens
+    def __init__(self, section: str, values: np.ndarray, make: Callable[[int], RateCodec], sens: Sensitivity,
+                 *, classes: np.ndarray | None = None, exhaustive: bool = True,
+                 sample: np.ndarray | None = None) -> None:  # fmt: skip
+        self.section, self.values, self.make, self.sens, self.classes = section, values, make, sens, classes
         self.exhaustive = exhaustive
         self._rungs: dict[int, Rung] = {}
-        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)))
-        self._scale: tuple[float, float] | None = None  # (bits, error) of the whole set over the sample's
+        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)),
+                                                    None if classes is None else classes[sample])  # fmt: skip
+        self._scale: tuple[float, float] | None = None  # (bits, error): the whole set's real figures over estimates
 
-    def _measure(self, codec: SectionCodec, values: np.ndarray, sens: Sensitivity) -> tuple[float, float]:
-        coded = codec.encode(values)
-        decoded = codec.decode(coded.payload, values.shape, coded.params, coded.raw_length)
-        return 8.0 * len(coded.payload), sens.error(self.section, values, decoded)
+    def _measure(self, codec: RateCodec, values: np.ndarray, sens: Sensitivity,
+                 classes: np.ndarray | None) -> tuple[float, float]:  # fmt: skip
+        estimate = codec.estimate(values, classes=classes)
+        return estimate.bits, sens.error(self.section, values, estimate.decoded)
 
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
-            codec = self.make(k)
-            if self._sample is None:
-                self._rungs[k] = Rung(codec, *self._measure(codec, self.values, self.sens))
-                return self._rungs[k]
-            values, sens = self._sample
             if self._scale is None:
-                preset = self.make(0)
-                whole = self._measure(preset, self.values, self.sens)
-                part = self._measure(preset, values, sens)
-                # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at
-                # k = 0: then the errors scale as the sensitivity weights do.
-                weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()),
-                                                                            1e-300)  # fmt: skip
-                self._scale = (whole[0] / max(part[0], 1.0),
-                               whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight)  # fmt: skip
-            bits, error = self._measure(codec, values, sens)
+                self._scale = self._calibration()
+            codec = self.make(k)
+            try:
+                bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
+            except ValueError:  # a step too fine for the quantiser's grid (values beyond MAX_LEVELS cells)
+                bits, error = math.inf, math.inf
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
+    def _calibration(self) -> tuple[float, float]:
+        """(bits, error) of the whole set over the estimates, at the preset's own rung (k = 0): the real encode over
+        the estimate of what the rungs measure (the set, or its sample), and with a sample, the whole set's estimate
+        over the sample's (one real encode of the sample, not of a million Gaussians)."""
+        preset = self.make(0)
+        values, sens, classes = self._sample or (self.values, self.sens, self.classes)
+        real = 8.0 * len(preset.encode(values, classes=classes).payload)
+        part = self._measure(preset, values, sens, classes)
+        bits = real / max(part[0], 1.0)
+        if self._sample is None:
+            return bits, 1.0
+        whole = self._measure(preset, self.values, self.sens, self.classes)
+        # Values already on the preset's grid (a scene decoded from a quantised format) err by nothing at k = 0:
+        # then the errors scale as the sensitivity weights do.
+        weight = float(self.sens.weights[self.section].sum()) / max(float(sens.weights[self.section].sum()), 1e-300)
+        return bits * whole[0] / max(part[0], 1.0), whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight
+
     def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
-        """The rung minimising bits + mu * error (searched from ``start`` when not exhaustive)."""
+        """The rung minimising bits + mu * error: over ``RUNGS`` when exhaustive, then downhill below them; else
+        downhill from ``start``, looking two rungs ahead."""
         cost = lambda k: self.rung(k).bits + mu * self.rung(k).error  # noqa: E731
-        if self.exhaustive:
-            k = min(RUNGS, key=cost)
-            return k, self.rung(k)
-        k = min(max(start, RUNGS.start), RUNGS.stop - 1)
+        k = min(RUNGS, key=cost) if self.exhaustive else min(max(start, LOWEST), RUNGS.stop - 1)
         moved = True
         while moved:
             moved = False
-            for step in (1, 2, -1, -2):
-                if RUNGS.start <= k + step < RUNGS.stop and cost(k + step) < cost(k):
+            for step in (-1, -2) if self.exhaustive else (1, 2, -1, -2):
+                if LOWEST <= k + step < (RUNGS.start if self.exhaustive else RUNGS.stop) and cost(k + step) < cost(k):
                     k, moved = k + step, True
                     break
         return k, self.rung(k)
@@ -131,7 +146,7 @@ class Ladder:
 class Choice:
     """Each section's codec, which Gaussians stay, each one's SH degree, and what the model predicts of them."""
 
-    codecs: dict[str, SectionCodec]
+    codecs: dict[str, RateCodec]
     keep: Tensor  # [N] bool
     degrees: Tensor | None  # [N] SH degree kept (None: every band)
     errors: dict[str, float]  # predicted growth of the fitting MSE: "codec", "sh_reduction"
@@ -153,15 +168,21 @@ def palette_start(sh_rest: Tensor) -> int:
 
 
 class RateDistortion:
-    """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``."""
+    """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``; each Gaussian
+    quantised in its step class (``Sensitivity.step_classes``: ``classes`` [N] int64, in the input's order)."""
 
     def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps) -> None:
         stored = stored.detach().to(HOST)  # the ladders' encodes run where the entropy coders do
         self.extent = extent_of(stored)
-        cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy())
-        order = coding_order(stored, torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST), cells)
+        self.classes = sens.step_classes()
+        cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy(),
+                           self.classes.numpy().astype(np.uint8))  # fmt: skip
+        bits = torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST)
+        order = coding_order(stored, bits, cells, self.classes)
         self.order = order
         self.stored, self.sens = stored.select(order), sens.select(order)
+        ordered = self.classes[order].numpy().astype(np.uint8)
+        coded = ordered if ordered.any() else None
         self.start = start
         arrays = {k: v.contiguous().numpy() for k, v in self.stored.tensors().items()}
         n = len(self.stored)
@@ -169,7 +190,8 @@ class RateDistortion:
         sample = np.linspace(0, n - 1, RATE_SAMPLE).round().astype(np.int64) if n > RATE_SAMPLE else None
         s, x = start, self.extent
         step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
-        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, sample=sample, **kw)  # noqa: E731
+        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, classes=coded, sample=sample,
+                                                 **kw)  # noqa: E731
         self.ladders: dict[str, list[Ladder]] = {
             "means": [ladder("means", lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
             "quats": [ladder("quats", lambda k: RotationCodec(step(s.rotation)(k)))],
@@ -177,16 +199,16 @@ class RateDistortion:
             "opacities": [ladder("opacities", lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
             "sh_dc": [ladder("sh_dc", lambda k: ShDcCodec(step(s.dc)(k)))],
         }  # fmt: skip
-        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample)
+        self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample, coded)
         self._at: dict[tuple[str, int], int] = {}
         self._energy, self._cost_err, self._nonzero = self._truncation()
 
-    def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None) -> list[Ladder]:
-        """Per coefficient, and, with higher bands, as a palette (weighted by each row's sensitivity, so rows the
-        renders hardly see take coarser entry steps)."""
+    def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None, classes: np.ndarray | None) -> list[Ladder]:
+        """Per coefficient (in step classes), and, with higher bands, as a palette (weighted by each row's
+        sensitivity, so rows the renders hardly see take coarser entry steps)."""
         bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
-        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, exhaustive=False,
-                          sample=sample)]  # fmt: skip
+        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, classes=classes,
+                          exhaustive=False, sample=sample)]  # fmt: skip
         if self.stored.sh_degree:
             size = palette_start(self.stored.sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
@@ -216,7 +238,7 @@ class RateDistortion:
         Bits scale with the share kept."""
         every = torch.ones(len(self.stored), dtype=torch.bool, device=HOST)
         kept = every if keep is None else keep.to(HOST)[self.order]
-        lo, hi = 1e-3, 1e18  # bits per unit of MSE, bracketing every scene here
+        lo, hi = 1e-3, 1e30  # bits per unit of MSE, bracketing every scene here and every budget down to float32
         choice = self._at_price(hi, kept)
         if choice.error > allowed:
             return choice  # even the finest rungs overspend: the caller falls back to storing values exactly

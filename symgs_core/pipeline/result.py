@@ -7,8 +7,8 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-from ..codec import decode_archive, expand_archive
-from ..report import Cameras, Fidelity, GaussianCounts, Report, StageReport
+from ..codec import decode_archive, expand_archive, section_bytes
+from ..report import Cameras, Fidelity, GaussianCounts, Report, SectionBytes, StageReport
 from ..scene import GaussianScene
 from ..views import evaluate as scored
 from .encode import Fitted, fitted_baseline, stages
@@ -99,6 +99,7 @@ def report(evaluated: Evaluated, job: Job) -> CompressResult:
         levels=tuple(outcome.records),
         stages=evaluated.stages,
         codec=fitted.codec,
+        sections=tuple(SectionBytes(name, size) for name, size in section_bytes(archive)),
         fidelity=evaluated.fidelity,
         fitting=evaluated.fitting,
         psnr_input=evaluated.psnr_input,

@@ -100,7 +100,7 @@ def join(header: dict[str, Any], payloads: list[bytes]) -> bytes:
     other fields are written as they are (NaN and Infinity included, as a hostile writer would)."""
     import zlib
 
-    from symgs_core.codec.container import MAGIC
+    from symgs_core.codec.container import FORMAT_VERSION, MAGIC
 
     offset, sections = 0, header.get("sections")
     for section, payload in zip(sections if isinstance(sections, list) else [], payloads, strict=False):
@@ -109,7 +109,7 @@ def join(header: dict[str, Any], payloads: list[bytes]) -> bytes:
         offset += len(payload)
     text = json.dumps(header, separators=(",", ":")).encode()
     packed = zstandard.ZstdCompressor(level=3).compress(text)
-    prefix = MAGIC + (2).to_bytes(4, "little") + len(packed).to_bytes(4, "little")
+    prefix = MAGIC + FORMAT_VERSION.to_bytes(4, "little") + len(packed).to_bytes(4, "little")
     return prefix + zlib.crc32(packed).to_bytes(4, "little") + packed + b"".join(payloads)
 
 
@@ -250,6 +250,7 @@ def _zeros(size: int) -> bytes:
 def claiming(count: int, sh_degree: int, planes: list[dict[str, Any]], *, bits: bool = True) -> bytes:
     """A valid archive of ``count`` stored Gaussians whose every attribute is zero, with each level's bit set for all
     of them (``bits``) or none: a few kilobytes that claim millions of Gaussians, or billions once expanded."""
+    from symgs_core.codec.classes import CLASSES
     from symgs_core.codec.masks import PACKED
     from symgs_core.scene import SH_REST_COUNT
 
@@ -263,6 +264,9 @@ def claiming(count: int, sh_degree: int, planes: list[dict[str, Any]], *, bits: 
     raw = b"".join(bytes([PACKED]) + column for _ in planes)
     payloads.append(zstandard.ZstdCompressor(level=3).compress(raw))
     sections.append({"name": "bits", "codec": "mask-zstd", "raw_length": len(raw), "params": {}})
+    classes = CLASSES.encode(np.zeros(count, np.uint8))
+    payloads.append(classes.payload)
+    sections.append({"name": "classes", "codec": CLASSES.name, "raw_length": count, "params": {}})
     from symgs_core.cameras import COORDINATE_CONVENTION
 
     header = {"count": count, "sh_degree": sh_degree, "coordinate_convention": COORDINATE_CONVENTION,

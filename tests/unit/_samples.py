@@ -14,6 +14,7 @@ from symgs_core.report import (
     GaussianCounts,
     LevelReport,
     Report,
+    SectionBytes,
     StageReport,
     Steps,
 )
@@ -32,6 +33,7 @@ def sample_report() -> Report:
         levels=(LEVEL, replace(LEVEL, level=1, accepted=False, reason="below the floor")),
         stages=(StageReport("quantization", 50, 20, 30, 45.0, 1.0, 0.5, removed=None),),
         codec=CodecReport("balanced", Steps(1e-4, 0.01, 0.06, 0.01, 0.03, (0.03,), 0), 41.6, 5),
+        sections=(SectionBytes("header", 4), SectionBytes("means", 3), SectionBytes("sh_band_1", 3)),
         fidelity=Fidelity(math.inf, 44.0, 1.0), fitting=Fidelity(50.0, 45.0, 0.999), psnr_input=math.inf,
         psnr_floor=41.6, cameras=Cameras(*cameras, disjoint=True, background=(0.0, 0.0, 0.0)),
         seconds={"load": 0.25, "levels": 2.0}, device="cpu", config=CompressConfig.for_preset(),

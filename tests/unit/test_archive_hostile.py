@@ -17,6 +17,7 @@ from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 import zstandard
@@ -33,6 +34,8 @@ from symgs_core.codec import (
     expand_archive,
 )
 from symgs_core.codec.archive import decode_memory
+from symgs_core.codec.container import FORMAT_VERSION
+from symgs_core.codec.entropy import encode_table
 from symgs_core.codec.floats import FLOAT32
 from symgs_core.codec.masks import write_varints
 from symgs_core.mirror import Plane
@@ -55,9 +58,9 @@ def split(data: bytes) -> tuple[dict[str, Any], bytes]:
     return json.loads(text), data[20 + header_len :]
 
 
-def frame(text: bytes, body: bytes, version: int = 2) -> bytes:
-    """A frame of header ``text`` (version 2: zstd-compressed, as the writer does; 1: plain)."""
-    packed = zstandard.ZstdCompressor(level=19).compress(text) if version == 2 else text
+def frame(text: bytes, body: bytes, version: int = FORMAT_VERSION) -> bytes:
+    """A frame of header ``text`` (versions 2 and 3: zstd-compressed, as the writer does; 1: plain)."""
+    packed = zstandard.ZstdCompressor(level=19).compress(text) if version >= 2 else text
     return MAGIC + struct.pack("<III", version, len(packed), zlib.crc32(packed)) + packed + body
 
 
@@ -104,8 +107,8 @@ def test_every_single_bit_flip_is_caught() -> None:
     for byte in range(len(DATA)):
         if byte < 8:
             expected = {"bad_magic"}
-        elif byte < 12:
-            expected = {"unsupported_version"}
+        elif byte < 12:  # or another version this build reads, whose header this one is not
+            expected = {"unsupported_version", "bad_header"}
         elif byte < 16:  # header length: too long for the limit or the file, or a different CRC span
             expected = {"limit_exceeded", "truncated", "bad_checksum"}
         else:  # the header CRC, the header, or a section payload
@@ -269,7 +272,7 @@ HOSTILE_HEADERS: list[tuple[str, Callable[[dict], None], str]] = [
     ("absurd raw length", _section("sh_rest", "raw_length", 2**40), "limit_exceeded"),
     ("wrong raw length", _section("sh_rest", "raw_length", 4), "bad_header"),
     ("mask raw length beyond any stream", _section("bits", "raw_length", 10**6), "bad_header"),
-    ("last section past the end", _section("bits", "length", 10**6), "truncated"),
+    ("last section past the end", _section("classes", "length", 10**6), "truncated"),
     ("unknown codec", _section("means", "codec", "lz-magic"), "unsupported_codec"),
     ("mask codec for an attribute", _section("means", "codec", "mask-zstd"), "bad_header"),
     ("float codec for the masks", _section("bits", "codec", "f32-zstd"), "bad_header"),
@@ -322,7 +325,7 @@ def test_header_that_is_not_a_strict_json_object(text: bytes) -> None:
 
 def test_unsupported_version_and_header_size_limit() -> None:
     header, body = split(DATA)
-    assert code_of(frame(json.dumps(header).encode(), body, version=3)) == "unsupported_version"
+    assert code_of(frame(json.dumps(header).encode(), body, version=FORMAT_VERSION + 1)) == "unsupported_version"
     assert code_of(DATA, DecodeLimits(max_header_bytes=100)) == "limit_exceeded"
     assert code_of(DATA, DecodeLimits(max_gaussians=4)) == "limit_exceeded"
     assert code_of(DATA, DecodeLimits(max_levels=1)) == "limit_exceeded"
@@ -409,12 +412,34 @@ def test_hostile_payloads_with_valid_checksums(name: str, payload: bytes, raw_le
     assert code_of(with_payload(DATA, name, payload, raw_length)) == "corrupt_section"
 
 
+def without_classes(data: bytes) -> tuple[dict[str, Any], bytes]:
+    """The header and body of ``data`` as versions 1 and 2 wrote them: no step classes, the last section."""
+    header, body = split(data)
+    classes = header["sections"].pop()
+    assert classes["name"] == "classes"
+    return header, body[: classes["offset"]]
+
+
 def test_headers_are_compressed_and_plain_version_1_headers_still_read() -> None:
-    header, body = split(DATA)
+    header, body = without_classes(DATA)
     text = json.dumps(header, separators=(",", ":")).encode()
     assert int.from_bytes(DATA[12:16], "little") < len(text)  # the writer's header is the compressed one
     plain = decode_archive(frame(text, body, version=1))
-    assert plain.stored.means.shape == decode_archive(DATA).stored.means.shape
+    assert plain.stored.means.shape == decode_archive(DATA).stored.means.shape and plain.classes is None
+    assert code_of(frame(text, body)) == "bad_header"  # a version 3 archive must hold the classes
+
+
+def test_archives_of_version_2_hold_no_classes_and_decode_as_class_0() -> None:
+    header, body = without_classes(DATA)
+    old = decode_archive(frame(json.dumps(header, separators=(",", ":")).encode(), body, version=2))
+    assert old.classes is None and torch.equal(old.stored.means, decode_archive(DATA).stored.means)
+    assert code_of(frame(json.dumps(split(DATA)[0]).encode(), split(DATA)[1], version=2)) == "bad_header"
+
+
+@pytest.mark.parametrize("classes", [[0, 1, 2, 3, 8], [0, 0, 0, 0, -1], [0, 1], [0, 0, 0, 0, 0, 1]])
+def test_classes_out_of_range_or_count_are_corrupt(classes: list[int]) -> None:
+    payload = encode_table(np.array(classes, dtype=np.int64)[:, None])
+    assert code_of(with_payload(DATA, "classes", payload)) == "corrupt_section"
 
 
 def test_version_2_headers_that_do_not_inflate_are_refused() -> None:

@@ -162,7 +162,7 @@ def test_bench_writes_bench_json_files_and_charts(tmp_path: Path, monkeypatch: p
     tiny = ["--iterations", "2", "--max-levels", "1", "--train-views", "2", "--fit-views", "2", "--eval-views", "2",
             "--resolution", "24", "--eval-resolution", "24", "--other-views", "2"]  # fmt: skip
     code = main(["bench", str(tmp_path / "tiny.ply"), "--out", str(out), "--presets", "balanced", "--mirrors", "off",
-                 "--sweep", "1", "--no-install", *tiny])  # fmt: skip
+                 "--sweep", "1", "--no-install", "--trained", str(tmp_path / "tiny.ply"), *tiny])  # fmt: skip
     assert code == 0
     doc = json.loads((out / "bench.json").read_text())
     assert doc["schema"] == SCHEMA and doc["generated"]["machine"]["cores"] >= 1 and doc["generated"]["commit"]
@@ -192,6 +192,9 @@ def test_bench_writes_bench_json_files_and_charts(tmp_path: Path, monkeypatch: p
             assert image.format == "PNG" and image.size == size, name
     tables = (out / "bench.md").read_text()
     assert "| tiny | float16 ply + zstd |" in tables and "| tiny | symgs no mirrors | balanced |" in tables
+    assert sum(mine.sections.values()) == mine.bytes and f"| tiny | {mine.bytes:,} |" in tables
+    assert all(r.trained for r in rows) and doc["scenes"][0]["trained"] is True
+    assert "| float16 ply + zstd | trained |" in tables  # the summary reports trained scenes apart
 
 
 def test_a_rows_psnr_is_the_one_its_report_states(tmp_path: Path) -> None:

@@ -250,6 +250,9 @@ def test_the_report_accounts_for_every_stage_and_keeps_the_floor() -> None:
     for before, after in zip(stages, stages[1:]):
         assert after.bytes_before == before.bytes_after
     assert stages[-1].bytes_after == len(result.archive) == report.output_bytes
+    assert sum(part.bytes for part in report.sections) == report.output_bytes
+    index = "sh_index" if report.codec.steps and report.codec.steps.sh_palette else "sh_degrees"
+    assert [part.name for part in report.sections][-4:] == [index, "sh_band_1", "bits", "classes"]
     assert report.fitting.worst >= report.psnr_floor == pytest.approx(config.self_supervised_floor())
     assert stages[-1].psnr_after == pytest.approx(report.fitting.worst) and not stages[-1].predicted
     assert stages[1].predicted

@@ -171,11 +171,12 @@ def test_quantized_archive_encoding_is_pinned() -> None:
     """A format change must be deliberate: re-pin with the new digest only when the stream layout changes."""
     scene = _random_scene(300, 1, seed=11)
     name = QuantSteps().archive_codec(8.0, "test-pinned")
-    data = encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {}), codec=name)
+    classes = torch.arange(300) * 4 // 300  # classes 0..3, in runs as the coding order leaves them
+    data = encode_archive(ArchiveContents(scene, [], torch.zeros(300, 0, dtype=torch.bool), {}, classes), codec=name)
     assert hashlib.sha256(data).hexdigest() == PINNED
 
 
-PINNED = "5d28fe48715ee6bb7c5100460f38898bb661b5978e5cadbcb48949f9a07cd0be"
+PINNED = "52deddf323070994779ab5d82a295442b9b5a567818b183ae9253d814ecacfbb"
 
 
 @pytest.mark.parametrize(
@@ -255,3 +256,23 @@ def test_colour_channels_that_move_together_are_stored_decorrelated() -> None:
     assert coded.params["decorrelate"] == [True, True]
     out, _ = _roundtrip(ShRestCodec((0.01, 0.01)), rest)
     assert np.abs(out - rest).max() <= 0.005 + 1e-6
+
+
+@pytest.mark.parametrize("palette", [0, 64])
+def test_an_archive_tells_where_its_bytes_are_each_sh_band_apart(palette: int) -> None:
+    from dataclasses import replace
+
+    from symgs_core.codec import section_bytes
+
+    scene = _random_scene(400, 2, seed=3)
+    bits = torch.zeros(400, 0, dtype=torch.bool)
+    writer = replace(QuantSteps(), sh_palette=palette).archive_codec(8.0, "test-parts")
+    data = encode_archive(ArchiveContents(scene, [], bits, {}), codec=writer)
+    parts = section_bytes(data)
+    index = "sh_index" if palette else "sh_degrees"
+    names = ["header", "means", "quats", "scales", "opacities", "sh_dc", index, "sh_band_1", "sh_band_2", "bits",
+             "classes"]
+    assert [name for name, _ in parts] == names
+    assert sum(size for _, size in parts) == len(data) and all(size > 0 for _, size in parts)
+    lossless = section_bytes(encode_archive(ArchiveContents(scene, [], bits, {})))
+    assert [name for name, _ in lossless][-3:] == ["sh_rest", "bits", "classes"]

@@ -11,7 +11,7 @@ import torch
 from symgs_core.cameras import Camera
 from symgs_core.metrics import psnr_to_mse
 from symgs_core.mirror import expand
-from symgs_core.pipeline.sensitivity import sensitivity
+from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
 from symgs_core.pipeline.state import LevelState
 from symgs_core.render import render
 from symgs_core.scene import GaussianScene
@@ -91,3 +91,23 @@ def test_removal_prices_each_gaussian_by_its_alpha() -> None:
     assert torch.allclose(weights.removal(scene.opacities), weights.weights["opacities"] * alpha**2)
     with pytest.raises(ValueError, match="at least one view"):
         sensitivity(LevelState.plain(scene), [], torch.zeros(3))
+
+
+def test_what_only_the_coverage_cameras_see_still_weighs() -> None:
+    scene, views = _tiny()
+    far = scene.with_(means=torch.cat([scene.means[:-1], torch.tensor([[0.0, -8.0, 0.0]])]))  # behind the camera
+    behind = Camera.look_at((0.0, -6.0, 0.2), (0.0, -8.0, 0.0), fov_deg=40, width=10, height=10)  # facing it
+    alone = sensitivity(LevelState.plain(far), views, torch.zeros(3)).per_gaussian("sh_dc")
+    covered = sensitivity(LevelState.plain(far), views, torch.zeros(3), coverage=[behind]).per_gaussian("sh_dc")
+    assert float(alone[-1]) == 0.0 and float(covered[-1]) > 0.0
+    assert torch.allclose(covered[:-1], alone[:-1])  # the coverage camera sees nothing else
+
+
+def test_step_classes_coarsen_by_a_step_per_quarter_of_the_weight() -> None:
+    n = 100
+    weight = torch.full((n,), 1.0, dtype=torch.float64)
+    weight[:10] = 4.0 ** torch.arange(-4, 6, dtype=torch.float64)  # 1/256 .. 1024
+    weights = {name: weight[:, None].repeat(1, width) for name, width in (("means", 3), ("sh_dc", 3))}
+    classes = Sensitivity(weights).step_classes(4)
+    assert classes[:10].tolist() == [3, 3, 2, 1, 0, 0, 0, 0, 0, 0] and (classes[10:] == 0).all()
+    assert (Sensitivity({"means": torch.zeros(5, 3, dtype=torch.float64)}).step_classes() == 0).all()
