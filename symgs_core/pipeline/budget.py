@@ -41,12 +41,7 @@ from ..devices import HOST
 from ..scene import GaussianScene
 from .sensitivity import Sensitivity
 
-RUNGS = range(-6, 11)  # the rungs every exhaustive ladder prices: steps 2^(k/2) times the preset's, 1/8 .. 32
-# Below them a ladder walks down while finer steps pay, to 2^-16 of the preset's step (about what float32 holds): a
-# budget that asks for more than RUNGS reach gets finer quantisers, not a float32 archive. Measured on kacytran with
-# the preset high's steps: budget 0.01 dB 197 kB (56.5 dB on the fitting cameras), 0.003 dB 1,550 kB float32 when
-# the ladders stopped at 1/8.
-LOWEST = -32
+RUNGS = range(-6, 11)  # a ladder's steps: 2^(k/2) times the preset's, 1/8 .. 32
 _EXACT_PALETTE = 1 << 16  # distinct SH rows below which the palette holds every row exactly
 _PALETTE = 1 << 14  # the k-means palette size otherwise
 _MU_STEPS = 48  # bisection steps on the price (log scale)
@@ -103,10 +98,7 @@ class Ladder:
             if self._scale is None:
                 self._scale = self._calibration()
             codec = self.make(k)
-            try:
-                bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
-            except ValueError:  # a step too fine for the quantiser's grid (values beyond MAX_LEVELS cells)
-                bits, error = math.inf, math.inf
+            bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
@@ -128,15 +120,17 @@ class Ladder:
         return bits * whole[0] / max(part[0], 1.0), whole[1] / part[1] if part[1] > 0 and whole[1] > 0 else weight
 
     def best(self, mu: float, start: int = 0) -> tuple[int, Rung]:
-        """The rung minimising bits + mu * error: over ``RUNGS`` when exhaustive, then downhill below them; else
-        downhill from ``start``, looking two rungs ahead."""
+        """The rung minimising bits + mu * error (searched from ``start`` when not exhaustive)."""
         cost = lambda k: self.rung(k).bits + mu * self.rung(k).error  # noqa: E731
-        k = min(RUNGS, key=cost) if self.exhaustive else min(max(start, LOWEST), RUNGS.stop - 1)
+        if self.exhaustive:
+            k = min(RUNGS, key=cost)
+            return k, self.rung(k)
+        k = min(max(start, RUNGS.start), RUNGS.stop - 1)
         moved = True
         while moved:
             moved = False
-            for step in (-1, -2) if self.exhaustive else (1, 2, -1, -2):
-                if LOWEST <= k + step < (RUNGS.start if self.exhaustive else RUNGS.stop) and cost(k + step) < cost(k):
+            for step in (1, 2, -1, -2):
+                if RUNGS.start <= k + step < RUNGS.stop and cost(k + step) < cost(k):
                     k, moved = k + step, True
                     break
         return k, self.rung(k)
@@ -238,7 +232,7 @@ class RateDistortion:
         Bits scale with the share kept."""
         every = torch.ones(len(self.stored), dtype=torch.bool, device=HOST)
         kept = every if keep is None else keep.to(HOST)[self.order]
-        lo, hi = 1e-3, 1e30  # bits per unit of MSE, bracketing every scene here and every budget down to float32
+        lo, hi = 1e-3, 1e18  # bits per unit of MSE, bracketing every scene here
         choice = self._at_price(hi, kept)
         if choice.error > allowed:
             return choice  # even the finest rungs overspend: the caller falls back to storing values exactly
