@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def main() -> int:
     from service.cli import main as cli
-    from symgs_core.bench.capture import ITERATIONS, ROUNDS, cached_capture
+    from symgs_core.bench.capture import cached_capture
     from symgs_core.datasets import DatasetError
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -38,9 +38,9 @@ def main() -> int:
     rest = [a for a in rest if a != "--"]
     trained = []
     for folder in args.captures:
-        ply = args.work / folder.name / f"trained-{ROUNDS}x{ITERATIONS}.ply"
         try:
-            trained.append(cached_capture(folder, ply, say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True)))
+            trained.append(cached_capture(folder, args.work / folder.name,
+                                          say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True)))
         except DatasetError as exc:  # photographs this build cannot read yet (a distorted camera): said, not fatal
             print(f"{folder.name}: not trained, left out: {exc}", flush=True)
     matched = [p for p in args.scenes if any(m in str(p) for m in args.trained_match)]

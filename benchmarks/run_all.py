@@ -50,7 +50,6 @@ PLANT = "padilla_captures_cc_by/plant_113k_sh0.ply"
 TAROT = "padilla_captures_cc_by/academic_tarot_cards_115k_sh0.ply"
 SNOWMIKU = "snowmiku_plush_capture_mit"  # photographs and a COLMAP model, no trained scene
 LEGO = "nerf_synthetic_lego_400px"  # NeRF-Synthetic photographs, no points, no trained scene
-FOX_CAPTURE = "instant_ngp_fox_capture"  # phone photographs with lens distortion, no points, no trained scene
 REAL = (KACYTRAN, PLAYBOT_31K, DONUT, FOX, PLANT, TAROT, PLAYBOT_125K)  # smallest first
 FOX_CAPTURE = "instant_ngp_fox_capture"  # phone photographs with a distorted camera, no trained scene
 CAPTURES = tuple("{data}/" + c for c in (LEGO, SNOWMIKU, FOX_CAPTURE))
