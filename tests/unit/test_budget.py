@@ -13,7 +13,7 @@ from symgs_core.codec.steps import QuantSteps
 from symgs_core.config import floor_for_budget
 from symgs_core.metrics import psnr_to_mse
 from symgs_core.pipeline import encode
-from symgs_core.pipeline.budget import RUNGS, RateDistortion
+from symgs_core.pipeline.budget import LOWEST, RUNGS, RateDistortion
 from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
 from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
 from symgs_core.pipeline.state import LevelState
@@ -47,6 +47,21 @@ def test_a_ladder_finds_the_cheapest_rung_at_every_price(setting) -> None:  # no
                 k, rung = ladder.best(mu, start)
                 assert rung.bits + mu * rung.error == pytest.approx(rungs[best].bits + mu * rungs[best].error), (
                     section, mu, start)
+
+
+def test_below_its_rungs_a_ladder_walks_only_where_it_is_let(setting) -> None:  # noqa: ANN001
+    state, _, weights = setting
+    rd = RateDistortion(state.stored, weights, QuantSteps())
+    every = range(LOWEST, RUNGS.stop)
+    for section in ("means", "scales", "sh_dc"):
+        ladder = rd.ladders[section][0]
+        rungs = {k: ladder.rung(k) for k in every}
+        mu = 1e15  # a price past the finest of RUNGS
+        best = min(every, key=lambda k: rungs[k].bits + mu * rungs[k].error)
+        assert best < RUNGS.start, section
+        assert ladder.best(mu)[0] == RUNGS.start, section
+        k, rung = ladder.best(mu, lowest=LOWEST)
+        assert rung.bits + mu * rung.error == pytest.approx(rungs[best].bits + mu * rungs[best].error), section
 
 
 def test_the_price_spends_what_is_allowed_and_no_more(setting) -> None:  # noqa: ANN001
@@ -178,3 +193,18 @@ def test_the_rate_model_prices_what_a_change_to_the_state_costs_in_budget(settin
     measured = len(refit.archive) / len(fitted.archive)
     assert measured > 1.0
     assert rate_model(fitted, FLOOR)(math.inf, psnr) == pytest.approx(measured, rel=0.3)
+
+
+def test_a_budget_past_the_finest_rungs_gets_finer_steps_not_float32(setting) -> None:  # noqa: ANN001
+    """Floors far above the balanced one: the size grows with the floor and stays quantised, well below float32;
+    at the balanced floor no rung below RUNGS is taken."""
+    state, views, _ = setting
+    lossless, sizes = len(write_archive(state, {})), []
+    for floor in (FLOOR, FLOOR + 20.0, FLOOR + 35.0):
+        fitted = fit_codec(state, views.fit, views.background, floor=floor, psnr_before=math.inf, start=QuantSteps(),
+                           meta={}, name="high")  # fmt: skip
+        assert fitted.codec.name == "high" and fitted.psnr >= floor, (floor, fitted.tries)
+        finest = min(fitted.choice.rungs.values())
+        assert finest >= RUNGS.start if floor == FLOOR else finest < RUNGS.start, (floor, fitted.choice.rungs)
+        sizes.append(len(fitted.archive))
+    assert sizes[0] < sizes[1] < sizes[2] < 0.8 * lossless
