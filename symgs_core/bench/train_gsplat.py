@@ -30,7 +30,7 @@ from ..progress import ProgressEvent, ProgressFn
 from ..render.projection import LOW_PASS
 from ..scene import GaussianScene
 from ..views import photo_scale
-from .capture import GPU_ITERATIONS, Say, TrainSettings, capture_extent, initial_scene, sfm_points, start_points
+from .train_start import GPU_ITERATIONS, Say, TrainSettings, capture_extent, initial_scene, sfm_points, start_points
 
 if TYPE_CHECKING:
     from ..cameras import Camera

@@ -15,12 +15,12 @@ from pathlib import Path
 
 from ..cameras import View
 from .colmap import COLMAP_MODELS, colmap_frames, colmap_model_dir, load_colmap, read_colmap_model
+from .errors import DatasetError
 from .images import load_frames, load_views, pixel_limit, read_frame, read_image, read_premultiplied, resize_image
 from .lens import Lens
 from .nerf import has_transforms, load_nerf_synthetic, nerf_synthetic_frames, write_nerf_synthetic
 from .posed import (
     LLFF_HOLD,
-    DatasetError,
     Layout,
     Photograph,
     PosedFrame,

@@ -22,16 +22,17 @@ import numpy as np
 import torch
 
 from ..cameras import View
+from .errors import DatasetError
 from .images import image_size, load_views
-from .lens import Lens, posed_frame
+from .lens import Lens
 from .posed import (
-    DatasetError,
     PosedFrame,
     Split,
     check_background,
     finite,
     in_split,
     inside,
+    posed_frame,
     rotation_ok,
 )
 

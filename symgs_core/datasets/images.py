@@ -16,8 +16,9 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, View
+from .errors import DatasetError
 from .lens import UndistortionMaps, undistort_image, undistortion_maps
-from .posed import DatasetError, Photograph, PosedFrame, composite
+from .posed import Photograph, PosedFrame, composite
 
 _PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
 

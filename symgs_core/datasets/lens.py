@@ -15,13 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 from torch import Tensor
 
-from ..cameras import Camera
-from .posed import DatasetError, PosedFrame
+from .errors import DatasetError
 
 # COLMAP's undistorter never shrinks a frame below a fifth of its size nor grows it past twice (min_scale, max_scale).
 MIN_FRAME_SCALE, MAX_FRAME_SCALE = 0.2, 2.0
@@ -133,16 +131,6 @@ def pinhole_for(lens: Lens) -> tuple[float, float, float, float, int, int]:
     scale_y = float(np.clip(scale_y, MIN_FRAME_SCALE, MAX_FRAME_SCALE))
     width, height = max(1, int(scale_x * w + 1e-9)), max(1, int(scale_y * h + 1e-9))
     return lens.fx, lens.fy, cx * width / w, cy * height / h, width, height
-
-
-def posed_frame(rotation: Tensor, translation: Tensor, lens: Lens, path: Path, name: str) -> PosedFrame:
-    """The frame of a photograph taken with ``lens`` from the pose ``rotation`` [3, 3], ``translation`` [3]
-    (world-to-camera): a pinhole camera as it is, a distorted one as the pinhole it is undistorted to."""
-    if not lens.distorted:
-        camera = Camera(rotation, translation, lens.fx, lens.fy, lens.cx, lens.cy, lens.width, lens.height, name)
-        return PosedFrame(camera, path, name)
-    camera = Camera(rotation, translation, *pinhole_for(lens), name)
-    return PosedFrame(camera, path, name, lens)
 
 
 @dataclass(frozen=True)

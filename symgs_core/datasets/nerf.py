@@ -25,16 +25,17 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, View
+from .errors import DatasetError
 from .images import image_size, load_views
-from .lens import Lens, posed_frame
+from .lens import Lens
 from .posed import (
-    DatasetError,
     PosedFrame,
     Split,
     check_background,
     finite,
     held_out,
     inside,
+    posed_frame,
     rotation_ok,
 )
 

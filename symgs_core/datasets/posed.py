@@ -12,38 +12,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..cameras import Camera
-
-if TYPE_CHECKING:
-    from .lens import Lens
+from .lens import Lens, pinhole_for
 
 Split = Literal["train", "val", "test", "all"]
 Layout = Literal["nerf_synthetic", "colmap"]
 
 LLFF_HOLD = 8  # a set without a test split holds out every 8th image by name (the LLFF convention)
-
-
-class DatasetError(ValueError):
-    """A dataset that cannot be loaded; ``code`` says why in a machine-readable word.
-
-    Codes: not_found, unknown_layout, bad_split, bad_json, bad_transforms, image_missing, bad_image, image_too_large,
-    malformed, unknown_camera_model, unsupported_camera_model (a fisheye or panoramic model, which no pinhole holds
-    whole), distorted_camera (a lens too strong to undo), camera_missing, empty; and, from the pipeline, images_mismatch
-    (``views.check_photographs``) and too_few_images (``views.dataset_views``).
-    """
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(code, message)  # both, so a pickled copy (Celery's failure hook) keeps the code
-        self.code, self.message = code, message
-
-    def __str__(self) -> str:
-        return self.message
 
 
 @dataclass
@@ -113,3 +94,13 @@ def inside(root: Path, path: Path) -> bool:
 
 def rotation_ok(r: np.ndarray) -> bool:
     return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
+
+
+def posed_frame(rotation: Tensor, translation: Tensor, lens: Lens, path: Path, name: str) -> PosedFrame:
+    """The frame of a photograph taken with ``lens`` from the pose ``rotation`` [3, 3], ``translation`` [3]
+    (world-to-camera): a pinhole camera as it is, a distorted one as the pinhole it is undistorted to."""
+    if not lens.distorted:
+        camera = Camera(rotation, translation, lens.fx, lens.fy, lens.cx, lens.cy, lens.width, lens.height, name)
+        return PosedFrame(camera, path, name)
+    camera = Camera(rotation, translation, *pinhole_for(lens), name)
+    return PosedFrame(camera, path, name, lens)

@@ -11,19 +11,9 @@ import pytest
 import torch
 
 from symgs_core.bench import capture
-from symgs_core.bench.capture import (
-    DROP_OPACITY,
-    TrainSettings,
-    cached_capture,
-    capture_key,
-    grown,
-    initial_scene,
-    orbit_points,
-    start_points,
-    train,
-    train_capture,
-)
+from symgs_core.bench.capture import DROP_OPACITY, cached_capture, capture_key, grown, train, train_capture
 from symgs_core.bench.photos import photographed
+from symgs_core.bench.train_start import TrainSettings, initial_scene, orbit_points, start_points
 from symgs_core.cameras import Camera
 from symgs_core.datasets import DatasetError, dataset_frames
 from symgs_core.progress import ProgressEvent
