@@ -58,6 +58,11 @@ def main() -> int:
         report = compress(ply, images=args.capture, config=replace(config, use_mirrors=mirrors)).report
         rows.append((label, report, time.perf_counter() - t0))
         say(f"{label}: {report.output_bytes:,} B, {report.fidelity.psnr:.2f} dB, {time.perf_counter() - t0:.0f} s")
+        for level in report.levels:  # why each mirror tried was kept or not: what a run on a GPU has to tell
+            say(f"  level {level.level}: {'kept' if level.accepted else 'not kept'} ({level.reason}); "
+                f"{level.left:,} kept and reflected, {level.right:,} dropped; fitting PSNR {level.psnr_before:.2f} "
+                f"dB before the fine-tune, {level.psnr_after:.2f} after {level.iterations} steps, floor "
+                f"{report.psnr_floor:.2f}")
 
     schedule = (f"{settings.iterations:,} steps on {device}" if device == "cuda" else
                 f"the CPU schedule: {settings.rounds} rounds of {settings.iterations // settings.rounds} steps at "
