@@ -39,10 +39,17 @@ def main() -> int:
     trained = []
     for folder in args.captures:
         try:
-            trained.append(cached_capture(folder, args.work / folder.name,
-                                          say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True)))
-        except DatasetError as exc:  # photographs this build cannot read yet (a distorted camera): said, not fatal
+            ply = cached_capture(folder, args.work / folder.name,
+                                 say=lambda m, f=folder: print(f"{f.name}: {m}", flush=True))  # fmt: skip
+        except DatasetError as exc:  # photographs this build cannot read: said, not fatal
             print(f"{folder.name}: not trained, left out: {exc}", flush=True)
+            continue
+        # The bench names a scene by its file: a link named after the capture, not after the cache's key.
+        named = args.out / "captures" / f"{folder.name}.ply"
+        named.parent.mkdir(parents=True, exist_ok=True)
+        named.unlink(missing_ok=True)
+        named.symlink_to(ply.resolve())
+        trained.append(named)
     matched = [p for p in args.scenes if any(m in str(p) for m in args.trained_match)]
     trained += matched
     scenes = [str(p) for p in [*trained, *(p for p in args.scenes if p not in matched)]]
