@@ -96,7 +96,6 @@ class Fitted:
     seconds: float = 0.0
     rd: RateDistortion | None = None  # the rate model the codec was chosen by (``rate_model``)
     allowed: float = 0.0  # the growth of the fitting MSE the floor left the codec
-    classes: Tensor | None = None  # [|S|] the step class of each Gaussian of ``state`` (None: class 0)
 
     def classes_of(self, kept: Tensor | None = None) -> Tensor | None:
         """Step classes of ``unreduced``'s Gaussians (those of ``kept`` [M] indices, or all), as the codec chose."""
@@ -199,8 +198,7 @@ def fit_codec(
             kept, stored = rd.apply(choice)
             candidate = LevelState(stored, state.normals, state.offsets, state.bits[kept.to(state.bits.device)])
             codec = ArchiveCodec(name, {**choice.codecs, "bits": MASKS, "classes": CLASSES})
-            classes = rd.classes[kept]
-            archive = write_archive(candidate, meta, codec, classes)
+            archive = write_archive(candidate, meta, codec, rd.classes[kept])
             decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
             measured[key] = evaluate(decoded, fit, background, with_ssim=False).worst
             tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
@@ -212,7 +210,7 @@ def fit_codec(
                 steps = rd.steps(choice)
                 best = Fitted(candidate, archive, measured[key], CodecReport(name, steps.report(), floor, 0), steps,
                               codec, choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
-                              dropped_bands=dropped, classes=classes)  # fmt: skip
+                              dropped_bands=dropped)  # fmt: skip
                 improved = True
         excess = psnr_to_mse(measured[key]) - psnr_to_mse(psnr_before)
         if improved and excess >= _CLOSE * allowed:
