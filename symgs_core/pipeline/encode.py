@@ -130,6 +130,7 @@ def prune(
     order = rd.prune_order()
     keep_all = torch.ones(n, dtype=torch.bool, device=HOST)  # masks over the rate model's set, which lives there
     best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
+    predicted = rd.sens.removal(rd.stored.opacities)  # [N] in the rate model's order
     for share in reversed(PRUNE_SHARES):
         if should_stop is not None and should_stop():
             break
@@ -139,7 +140,7 @@ def prune(
             continue  # even free, this share would not pay
         # Rendered on the fitting views; predicted where the coverage cameras see what they do not.
         removed = max(_excess(_without(state, keep), fit, background, psnr_before),
-                      float(rd.sens.removal(rd.stored.opacities)[~keep[rd.order]].sum()))  # fmt: skip
+                      float(predicted[~keep[rd.order]].sum()))  # fmt: skip
         if removed >= 0.5 * allowed:
             continue
         bits = rd.choose(_AIM * allowed - removed, keep=keep).bits
