@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -98,15 +99,25 @@ class Ladder:
         estimate = codec.estimate(values, classes=classes)
         return estimate.bits, sens.error(self.section, values, estimate.decoded)
 
+    @cached_property
+    def _preset(self) -> tuple[RateCodec, tuple[float, float]]:
+        """The preset's own rung (k = 0): its codec, and the estimate of what the rungs measure (the set, or its
+        sample), which both that rung and the calibration use."""
+        preset = self.make(0)
+        return preset, self._measure(preset, *(self._sample or (self.values, self.sens, self.classes)))
+
     def rung(self, k: int) -> Rung:
         if k not in self._rungs:
             if self._scale is None:
                 self._scale = self._calibration()
-            codec = self.make(k)
-            try:
-                bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
-            except ValueError:  # a step too fine for the quantiser's grid (values beyond its cells)
-                bits, error = math.inf, math.inf
+            if k == 0:
+                codec, (bits, error) = self._preset
+            else:
+                codec = self.make(k)
+                try:
+                    bits, error = self._measure(codec, *(self._sample or (self.values, self.sens, self.classes)))
+                except ValueError:  # a step too fine for the quantiser's grid (values beyond its cells)
+                    bits, error = math.inf, math.inf
             self._rungs[k] = Rung(codec, bits * self._scale[0], error * self._scale[1])
         return self._rungs[k]
 
@@ -114,10 +125,9 @@ class Ladder:
         """(bits, error) of the whole set over the estimates, at the preset's own rung (k = 0): the real encode over
         the estimate of what the rungs measure (the set, or its sample), and with a sample, the whole set's estimate
         over the sample's (one real encode of the sample, not of a million Gaussians)."""
-        preset = self.make(0)
+        preset, part = self._preset
         values, sens, classes = self._sample or (self.values, self.sens, self.classes)
         real = 8.0 * len(preset.encode(values, classes=classes).payload)
-        part = self._measure(preset, values, sens, classes)
         bits = real / max(part[0], 1.0)
         if self._sample is None:
             return bits, 1.0
