@@ -18,7 +18,7 @@ of the frame: 36.5 dB full frame, 26.1 dB on its own pixels). A floor holds on b
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
@@ -326,22 +326,19 @@ def dataset_eval_views(
 
 
 EVAL_BATCH = 16  # views rendered together: one gsplat call on a GPU, and a bound on the images held at once
+BOUND_BATCH = 4  # views rendered together where ``worst_psnr`` may stop early
 
 
-@torch.no_grad()
-def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *, with_ssim: bool = True) -> Fidelity:
-    """Fidelity of ``scene`` on ``views``: PSNRs from the squared error summed over every view (full frame, and the
-    object's pixels), SSIM the mean over views (NaN without ``with_ssim``: decisions read the PSNRs alone). The sums
-    stay on the scene's device until the end: one wait for the device per call, not per view."""
+def _errors(
+    scene: GaussianScene, views: Sequence[View], background: Tensor, batch: int, with_ssim: bool
+) -> Iterator[tuple[Tensor, int, list[Tensor]]]:
+    """Per batch of views: (the squared errors' sums [3] over the batch: full frame, object pixels, object pixel
+    count, on the scene's device; the frames' pixels; the batch's SSIMs)."""
     from .render import render_many
 
-    if not views:
-        raise ValueError("evaluate needs at least one view")
-    sums = []  # per view: squared error over the frame, over the object's pixels, and the object's pixel count
-    pixels = 0
-    ssims = []
-    for start in range(0, len(views), EVAL_BATCH):
-        chunk = [views[i] for i in range(start, min(start + EVAL_BATCH, len(views)))]
+    for start in range(0, len(views), batch):
+        chunk = [views[i] for i in range(start, min(start + batch, len(views)))]
+        sums, pixels, ssims = [], 0, []
         for view, out in zip(chunk, render_many(scene, [v.camera for v in chunk], background)):
             target, mask = view.image, view.mask
             error = ((out.image - target) ** 2).mean(dim=-1)
@@ -349,7 +346,41 @@ def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *,
             pixels += error.numel()
             if with_ssim:
                 ssims.append(ssim(out.image, target))
-    full, obj, object_pixels = torch.stack(sums).sum(dim=0).tolist()
+        yield torch.stack(sums).sum(dim=0), pixels, ssims
+
+
+@torch.no_grad()
+def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *, with_ssim: bool = True) -> Fidelity:
+    """Fidelity of ``scene`` on ``views``: PSNRs from the squared error summed over every view (full frame, and the
+    object's pixels), SSIM the mean over views (NaN without ``with_ssim``: decisions read the PSNRs alone). The sums
+    stay on the scene's device until the end: one wait for the device per call, not per view."""
+    if not views:
+        raise ValueError("evaluate needs at least one view")
+    batches = list(_errors(scene, views, background, EVAL_BATCH, with_ssim))
+    full, obj, object_pixels = torch.stack([b[0] for b in batches]).sum(dim=0).tolist()
+    pixels = sum(b[1] for b in batches)
+    ssims = [s for b in batches for s in b[2]]
     psnr = mse_to_psnr(full / pixels)
     psnr_object = mse_to_psnr(obj / object_pixels) if object_pixels else psnr
     return Fidelity(psnr, psnr_object, float(torch.stack(ssims).double().mean()) if ssims else math.nan)
+
+
+@torch.no_grad()
+def worst_psnr(scene: GaussianScene, views: Sequence[View], background: Tensor, *, below: float) -> float:
+    """``evaluate(...).worst``, but once the views rendered so far put it below ``below`` whatever the rest show,
+    the rest are not rendered and that bound is returned instead (a PSNR below ``below``, no lower than the true
+    one). Squared errors only add up: the sums over some views, divided by every view's pixels, bound the mean
+    from below. A decision that only asks "below ``below``?" gets the same answer from fewer renders."""
+    if not views:
+        raise ValueError("worst_psnr needs at least one view")
+    pixels = sum(v.mask.numel() for v in views)
+    object_pixels = float(sum(v.mask.sum() for v in views))
+    sums, seen = torch.zeros(3, dtype=torch.float64, device=scene.device), 0
+    for batch, count, _ in _errors(scene, views, background, BOUND_BATCH, False):
+        sums, seen = sums + batch, seen + count
+        full, obj, _ = sums.tolist()
+        psnr = mse_to_psnr(full / pixels)
+        bound = min(psnr, mse_to_psnr(obj / object_pixels) if object_pixels else psnr)
+        if seen < pixels and bound < below:
+            return bound
+    return bound

@@ -67,8 +67,9 @@ def _ans_words(symbols: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return coder.get_compressed()
 
 
-def _column(column: np.ndarray, level: int) -> bytes:
-    """The smallest stream of one column: raw or differenced values, each by zstd or ANS."""
+def _column(column: np.ndarray, level: int, raw_zstd: bool = True) -> bytes:
+    """The smallest stream of one column: raw or differenced values, each by zstd or ANS (raw values by zstd only
+    with ``raw_zstd``: a table of one column has that stream already, two bytes shorter, as its rows)."""
     out = []
     for transform in (RAW, DELTA):
         values = column if transform == RAW else np.diff(column, prepend=np.int64(0))
@@ -77,8 +78,9 @@ def _column(column: np.ndarray, level: int) -> bytes:
         top = int(symbols.max()) if len(symbols) else 0
         head = bytes([transform]) + varint(_zigzag(offset))
         width = _width(top)
-        frame = zstd_compress(symbols.astype(_WIDTHS[width]).tobytes(), level)
-        out.append(bytes([ZSTD]) + head + bytes([width]) + varint(len(frame)) + frame)
+        if raw_zstd or transform != RAW:
+            frame = zstd_compress(symbols.astype(_WIDTHS[width]).tobytes(), level)
+            out.append(bytes([ZSTD]) + head + bytes([width]) + varint(len(frame)) + frame)
         if 0 < top < MAX_ALPHABET:  # constriction needs two symbols or more
             counts = np.bincount(symbols, minlength=top + 1)
             hist = zstd_compress(write_varints(counts), level)
@@ -120,20 +122,23 @@ def encode_table(table: np.ndarray, level: int = CODING_LEVEL) -> bytes:
         parts = list(coding_pool().map(_column, table.T, [level] * table.shape[1]))
         rows = rows.result()
     else:
-        parts, rows = [_column(table[:, c], level) for c in range(table.shape[1])], _rows(table, level)
+        one = table.shape[1] == 1
+        parts = [_column(table[:, c], level, raw_zstd=not one) for c in range(table.shape[1])]
+        rows = _rows(table, level)
     return min(bytes([COLUMNS]) + b"".join(parts), rows, key=len)
 
 
-def _column_bits(column: np.ndarray, level: int) -> float:
-    """About the bits of ``_column(column)``: its zstd streams coded for real, its ANS streams priced at their
-    order-0 entropy plus their histograms' frames (coding them is what takes the time)."""
+def _column_bits(column: np.ndarray, level: int, raw_zstd: bool = True) -> float:
+    """About the bits of ``_column(column, raw_zstd=raw_zstd)``: its zstd streams coded for real, its ANS streams
+    priced at their order-0 entropy plus their histograms' frames (coding them is what takes the time)."""
     n, best = len(column), math.inf
     for transform in (RAW, DELTA):
         values = column if transform == RAW else np.diff(column, prepend=np.int64(0))
         symbols = values - (int(values.min()) if n else 0)
         top = int(symbols.max()) if n else 0
-        frame = zstd_compress(symbols.astype(_WIDTHS[_width(top)]).tobytes(), level)
-        best = min(best, 8.0 * (len(frame) + _HEAD))
+        if raw_zstd or transform != RAW:
+            frame = zstd_compress(symbols.astype(_WIDTHS[_width(top)]).tobytes(), level)
+            best = min(best, 8.0 * (len(frame) + _HEAD))
         if 0 < top < MAX_ALPHABET:
             counts = np.bincount(symbols, minlength=top + 1)
             used = counts[counts > 0].astype(np.float64)
@@ -166,7 +171,8 @@ def table_bits(table: np.ndarray, level: int = ESTIMATE_LEVEL) -> float:
     come out within 2% of the encoder's, but where its matches count most (flat columns of SH coefficients: 6-36%
     more). ``tests/unit/test_rate_estimate.py`` holds the figures to the real streams."""
     table = _checked(table)
-    columns = 8.0 + sum(_column_bits(table[:, c], level) for c in range(table.shape[1]))
+    one = table.shape[1] == 1
+    columns = 8.0 + sum(_column_bits(table[:, c], level, raw_zstd=not one) for c in range(table.shape[1]))
     return min(columns, 8.0 * len(_rows(table, level)))
 
 

@@ -231,7 +231,20 @@ def fit_codec(
     return best
 
 
-def rate_model(fitted: Fitted, floor: float) -> Callable[[float, float], float]:
+@dataclass(frozen=True)
+class Rate:
+    """(``psnr_from``, ``psnr_to``) -> the predicted ratio of archive bytes were a state's fitting PSNR ``psnr_to``
+    instead of ``psnr_from`` (``rate_model``). ``no_room``: fitting PSNRs at or below it leave the codec nothing of
+    the floor's budget (ratio inf from any ``psnr_from`` above it); -inf where no PSNR is known to."""
+
+    ratio: Callable[[float, float], float]
+    no_room: float = -math.inf
+
+    def __call__(self, psnr_from: float, psnr_to: float) -> float:
+        return self.ratio(psnr_from, psnr_to)
+
+
+def rate_model(fitted: Fitted, floor: float) -> Rate:
     """The size ratio of ``fitted``'s state coded to ``floor``, as a function of (``psnr_from``, ``psnr_to``):
     predicted bytes were its own fitting PSNR ``psnr_to`` instead of ``psnr_from``, over its bytes at ``psnr_from``;
     by the rate model it was fitted with, calibrated as it was. Each PSNR's bits are priced once: the level loop asks
@@ -257,7 +270,8 @@ def rate_model(fitted: Fitted, floor: float) -> Callable[[float, float], float]:
         before = bits(psnr_from)
         return bits(psnr_to) / before if math.isfinite(before) and before > 0 else 1.0
 
-    return ratio
+    left = psnr_to_mse(floor) - pruned / _AIM  # the MSE at which ``bits``' target reaches 0
+    return Rate(ratio, mse_to_psnr(left) if left > 0 else math.inf)
 
 
 def fixed_codec(

@@ -26,10 +26,10 @@ from ..devices import HOST
 from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
-from ..views import ViewSet, evaluate
+from ..views import ViewSet, evaluate, worst_psnr
 from .checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from .codec_fit import CodecFitted
-from .encode import Fitted, rate_model
+from .encode import Fitted, Rate, rate_model
 from .gating import colour_mismatch, gated
 from .job import Job, Reporter, grown
 from .optimize import halo, optimize_level
@@ -146,9 +146,6 @@ def _spacing(means: torch.Tensor) -> float:
     return float(max(float(torch.from_numpy(distances[:, 1]).median()), 1e-12))
 
 
-Rate = Callable[[float, float], float]  # (state's fitting PSNR, a candidate's) -> predicted ratio of archive bytes
-
-
 @dataclass(frozen=True)
 class Attempt:
     """A membership to try: its PSNR before the fine-tune and, with a rate model, the bytes its archive is
@@ -156,9 +153,10 @@ class Attempt:
     the codec so little as it starts (``SETTLED_COST``) that no fine-tune could pay for its minutes."""
 
     membership: Membership
-    psnr_before: float
+    psnr_before: float  # with ``bounded``, a bound: the PSNR is at most this
     predicted: float | None
     settled: bool = False
+    bounded: bool = False
 
     def pays(self, floor: float, best_bytes: int) -> bool:
         if self.predicted is not None:
@@ -181,16 +179,19 @@ def plan_attempts(
     starts. A fine-tune costs minutes on a large scene, and the rate model a few encodes.
     """
     worth = [m for m in options if m.right.numel() >= MIN_SAVING * len(state.stored)]
+    # Below this start no fine-tune can pay (``hopeless``, or no room left under the floor even TUNE_GAIN dB up):
+    # rendering stops once the fitting views seen so far put a membership there.
+    lowest = floor if rate is None else rate.no_room if psnr > rate.no_room else -math.inf
     attempts = []
     for m in worth:
         candidate = apply_mirror(state, m.plane, m.left, m.right)
-        before = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
+        before = worst_psnr(candidate.expanded(), views.fit, views.background, below=lowest - TUNE_GAIN)
         predicted, settled = None, False
         if rate is not None:
             share = len(candidate.stored) / max(len(state.stored), 1)
             predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
             settled = not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
-        attempts.append(Attempt(m, before, predicted, settled))
+        attempts.append(Attempt(m, before, predicted, settled, bounded=before < lowest - TUNE_GAIN))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
         if a.predicted is None:
@@ -253,7 +254,7 @@ def tune(
 
 def _unpaid(attempt: Attempt, floor: float, best_bytes: int) -> str:
     """Why ``attempt`` was not fine-tuned."""
-    start = f"not fine-tuned: it starts at {attempt.psnr_before:.2f} dB"
+    start = f"not fine-tuned: it starts {'no higher than' if attempt.bounded else 'at'} {attempt.psnr_before:.2f} dB"
     if attempt.predicted is None:
         return f"{start}, more than {TUNE_GAIN:g} dB below the floor {floor:.2f} dB"
     if not math.isfinite(attempt.predicted):

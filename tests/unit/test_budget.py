@@ -183,6 +183,9 @@ def test_the_rate_model_prices_what_a_change_to_the_state_costs_in_budget(settin
     ratios = [rate_model(fitted, FLOOR)(math.inf, FLOOR + d) for d in (6.0, 3.0, 1.0)]
     assert 1.0 < ratios[0] < ratios[1] < ratios[2]
     assert math.isinf(rate_model(fitted, FLOOR)(math.inf, FLOOR))
+    rate = rate_model(fitted, FLOOR)  # below ``no_room`` nothing is left, whatever the codec: what lets renders stop
+    assert FLOOR <= rate.no_room < FLOOR + 4.0
+    assert all(math.isinf(rate(math.inf, rate.no_room - d)) for d in (1e-6, 0.5, 3.0))
     gen = torch.Generator().manual_seed(1)
     noisy = state.stored.with_(sh_dc=state.stored.sh_dc + 0.05 * torch.randn(state.stored.sh_dc.shape, generator=gen))
     degraded = LevelState(noisy, state.normals, state.offsets, state.bits)

@@ -16,7 +16,7 @@ from symgs_core.bench.photos import photographed
 from symgs_core.config import CompressConfig
 from symgs_core.detect import DetectConfig, detect
 from symgs_core.pipeline import compress, decompress
-from symgs_core.pipeline.encode import Fitted
+from symgs_core.pipeline.encode import Fitted, Rate
 from symgs_core.pipeline.job import Reporter
 from symgs_core.pipeline.levels import SETTLED_COST, LevelSearch, memberships, run_levels
 from symgs_core.pipeline.state import LevelState
@@ -143,7 +143,7 @@ def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_j
 
     def run(ratio):  # noqa: ANN001, ANN202
         return _levels(scene, views, config, lambda st, p: judged.append(p) or _archive_of(9_000), floor=30.0,
-                       rate=lambda before, after: priced.append((before, after)) or ratio)
+                       rate=Rate(lambda before, after: priced.append((before, after)) or ratio))
 
     state, _, records = run(3.0)  # a third of the scene dropped, three times the bytes per Gaussian: no
     assert priced and all(math.isinf(before) for before, _ in priced)
@@ -164,7 +164,7 @@ def test_a_membership_that_costs_the_codec_almost_nothing_is_judged_without_a_fi
 
     def run(cost, reference=math.inf):  # noqa: ANN001, ANN202
         return _levels(scene, views, config, lambda st, p: _archive_of(9_000), floor=20.0, reference=reference,
-                       rate=lambda before, after: 1.0 + cost)
+                       rate=Rate(lambda before, after: 1.0 + cost))
 
     _, _, records = run(SETTLED_COST / 2)
     assert records[0].accepted and records[0].iterations == 0
