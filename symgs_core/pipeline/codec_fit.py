@@ -10,7 +10,7 @@ from ..cameras import COORDINATE_CONVENTION
 from ..codec.steps import QuantSteps
 from ..progress import StopFn
 from ..views import ViewSet
-from .encode import FitProgress, Fitted, fit_codec, fixed_codec
+from .encode import FitProgress, Fitted, check_views, fit_codec, fixed_codec
 from .job import Job, grown
 from .prepare import Viewed
 from .state import LevelState
@@ -37,8 +37,8 @@ class FloorCodec:
             return fixed_codec(state, self.views.fit, self.views.background, steps=self.start, meta=self.meta,
                                name=self.name)  # fmt: skip
         return fit_codec(state, self.views.fit, self.views.background, floor=self.floor, psnr_before=psnr,
-                         start=self.start, meta=self.meta, name=self.name, should_stop=self.should_stop,
-                         progress=progress)  # fmt: skip
+                         start=self.start, meta=self.meta, name=self.name, check=check_views(self.views.train),
+                         should_stop=self.should_stop, progress=progress)  # fmt: skip
 
 
 @dataclass(frozen=True)
