@@ -146,7 +146,7 @@ def prune(
     keep_all = torch.ones(n, dtype=torch.bool, device=HOST)  # masks over the rate model's set, which lives there
     best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
     predicted = rd.sens.removal(rd.stored.opacities)  # [N] in the rate model's order
-    checked_before: list[float] = []  # the state's own PSNR on ``check``, rendered once a share needs it
+    checked: float | None = None  # the state's own PSNR on ``check``, rendered once a share needs it
     for share in reversed(PRUNE_SHARES):
         if should_stop is not None and should_stop():
             break
@@ -157,9 +157,9 @@ def prune(
         without = _without(state, keep)
         removed = max(_excess(without, fit, background, psnr_before), float(predicted[~keep[rd.order]].sum()))
         if check and removed < 0.5 * allowed:
-            if not checked_before:
-                checked_before.append(evaluate(state.expanded(), check, background, with_ssim=False).worst)
-            removed = max(removed, _excess(without, check, background, checked_before[0]))
+            if checked is None:
+                checked = evaluate(state.expanded(), check, background, with_ssim=False).worst
+            removed = max(removed, _excess(without, check, background, checked))
         if removed >= 0.5 * allowed:
             continue
         bits = rd.choose(_AIM * allowed - removed, keep=keep).bits
