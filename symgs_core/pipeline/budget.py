@@ -179,12 +179,14 @@ def palette_start(sh_rest: Tensor) -> int:
 
 class RateDistortion:
     """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``; each Gaussian
-    quantised in its step class (``Sensitivity.step_classes``: ``classes`` [N] int64, in the input's order)."""
+    quantised in its step class (``classes`` [N] int64, in the input's order: ``Sensitivity.step_classes`` unless
+    given)."""
 
-    def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps) -> None:
+    def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps, *,
+                 classes: Tensor | None = None) -> None:  # fmt: skip
         stored = stored.detach().to(HOST)  # the ladders' encodes run where the entropy coders do
         self.extent = extent_of(stored)
-        self.classes = sens.step_classes()
+        self.classes = sens.step_classes() if classes is None else classes.to(HOST)
         cells = grid_cells(PositionCodec(start.position * max(self.extent, 1e-12)), stored.means.numpy(),
                            self.classes.numpy().astype(np.uint8))  # fmt: skip
         bits = torch.zeros(len(stored), 0, dtype=torch.bool, device=HOST)
@@ -231,6 +233,17 @@ class RateDistortion:
             # not the steps'.
             ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
         return ladders
+
+    def one_class(self) -> RateDistortion:
+        """The same model with every Gaussian in step class 0, for budgets the step classes cannot meet: a class's
+        steps are whole multiples of the section's, so on values already on a grid (a scene decoded from a quantised
+        format, where no finer step helps) the coarser classes' error is a floor no rung goes below."""
+        back = torch.empty_like(self.order)
+        back[self.order] = torch.arange(len(self.order), device=self.order.device)
+        model = RateDistortion(self.stored.select(back), self.sens.select(back), self.start,
+                               classes=torch.zeros_like(self.classes))  # fmt: skip
+        model.lowest = self.lowest
+        return model
 
     def best(self, section: str, mu: float) -> tuple[int, int, Rung]:
         """The cheapest rung of ``section`` at price ``mu``: (ladder, rung index, rung)."""

@@ -212,6 +212,9 @@ def fit_codec(
         if should_stop is not None and should_stop():
             break
         choice = rd.choose(target, keep=keep)
+        if choice.error > target and bool(rd.classes.any()):  # the classes' coarser steps are the floor
+            rd, measured = rd.one_class(), {}
+            choice = rd.choose(target, keep=keep)
         if choice.error > target:
             break  # nothing quantised fits: float32 below
         key, improved = _identity(choice), False
@@ -232,7 +235,7 @@ def fit_codec(
                 steps = rd.steps(choice)
                 best = Fitted(candidate, archive, measured[key], CodecReport(name, steps.report(), floor, 0), steps,
                               codec, choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
-                              dropped_bands=dropped)  # fmt: skip
+                              dropped_bands=dropped, rd=rd, allowed=allowed)  # fmt: skip
                 improved = True
         excess = psnr_to_mse(measured[key]) - psnr_to_mse(psnr_before)
         if improved and excess >= _CLOSE * allowed:
@@ -246,8 +249,6 @@ def fit_codec(
     if best is None:
         best = Fitted(state, write_archive(state, meta), psnr_before, _LOSSLESS)
     best.tries, best.seconds = tries, time.perf_counter() - t0
-    if best.choice is not None:
-        best.rd, best.allowed = rd, allowed
     best.codec = CodecReport(best.codec.name, best.codec.steps, best.codec.floor, len(tries))
     return best
 

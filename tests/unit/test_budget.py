@@ -11,7 +11,7 @@ import torch
 from symgs_core.codec import decode_archive, expand_archive
 from symgs_core.codec.steps import QuantSteps
 from symgs_core.config import floor_for_budget
-from symgs_core.metrics import psnr_to_mse
+from symgs_core.metrics import mse_to_psnr, psnr_to_mse
 from symgs_core.pipeline import encode
 from symgs_core.pipeline.budget import LOWEST, RUNGS, RateDistortion
 from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
@@ -211,3 +211,34 @@ def test_a_budget_past_the_finest_rungs_gets_finer_steps_not_float32(setting) ->
         assert finest >= RUNGS.start if floor == FLOOR else finest < RUNGS.start, (floor, fitted.choice.rungs)
         sizes.append(len(fitted.archive))
     assert sizes[0] < sizes[1] < sizes[2] < 0.8 * lossless
+
+
+def _on_grids(scene):  # noqa: ANN001, ANN202
+    """``scene`` with its values on the uniform grids a quantised container decodes to (.spz-like steps)."""
+    snap = lambda t, step: (torch.round(t / step) * step).to(t.dtype)  # noqa: E731
+    alpha = torch.sigmoid(scene.opacities).clamp(1 / 255, 254 / 255)
+    return scene.with_(means=snap(scene.means, 1 / 4096), scales=snap(scene.scales, 1 / 16),
+                       sh_dc=snap(scene.sh_dc, 1 / 64), opacities=torch.logit(snap(alpha, 1 / 255)))  # fmt: skip
+
+
+def test_step_classes_do_not_floor_a_budget_on_a_scene_already_on_grids() -> None:
+    """On values already on a grid, finer steps cannot help: a step class's coarser multiples of the grid are an
+    error no rung goes below. A budget under that error gets one class for all, quantised, not float32."""
+    scene = _on_grids(synthetic_scene("global", n=900, seed=2, sh_degree=0).scene)
+    views = self_supervised_views(scene, train=1, fit=3, eval=2, resolution=16, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    state = canonical(LevelState.plain(scene))
+    weights = sensitivity(state, views.fit, views.background)
+    rd = RateDistortion(state.stored, weights, QuantSteps())
+    assert rd.classes.any()
+    floor_error = rd.choose(1e-30).error  # the finest rungs of every ladder, LOWEST included
+    assert floor_error > 0
+    single = rd.one_class()
+    assert not single.classes.any() and single.lowest == LOWEST
+    assert single.choose(1e-3 * floor_error).error <= 1e-3 * floor_error
+    floor = mse_to_psnr(0.5 * floor_error / encode._AIM)  # a floor the classes' error alone would break
+    fitted = fit_codec(state, views.fit, views.background, floor=floor, psnr_before=math.inf, start=QuantSteps(),
+                       meta={}, name="high")  # fmt: skip
+    assert fitted.codec.name == "high" and fitted.psnr >= floor, fitted.tries
+    assert not fitted.classes_of().any()
+    assert len(fitted.archive) < 0.8 * len(write_archive(state, {}))
