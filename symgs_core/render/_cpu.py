@@ -1,4 +1,5 @@
-"""The CPU backend: PyTorch projection, compiled tile compositing."""
+"""The CPU backend: compiled projection (autograd through ``projection.project`` for float64 scenes), compiled tile
+compositing."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ def render_cpu(
     scene: GaussianScene, camera: Camera, background: Tensor, sh_degree: int, tile_size: int = TILE_SIZE
 ) -> RenderResult:
     """Render on the CPU; ``background`` [3]. The image does not depend on ``tile_size`` (only the speed does)."""
-    compiled = scene.means.dtype == torch.float32 and not _differentiated(scene)
+    compiled = scene.means.dtype == torch.float32
     proj = _project_compiled(scene, camera, sh_degree) if compiled else project(scene, camera, sh_degree)
     # Depth rides along as a fourth channel so the expected depth is composited (and differentiated) with colour.
     feats = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)
@@ -37,17 +38,31 @@ def render_cpu(
     )
 
 
-def _differentiated(scene: GaussianScene) -> bool:
-    return torch.is_grad_enabled() and any(t.requires_grad for t in scene.tensors().values())
+class _ProjectCompiled(torch.autograd.Function):
+    """``project`` in one compiled pass each way (``_project_kernel``, ``_project_grad``); float32."""
+
+    @staticmethod
+    def forward(ctx, camera: Camera, degree: int, *attributes: Tensor):  # noqa: ANN001, ANN205
+        from ._project_kernel import project_fast
+
+        arrays = [t.detach().cpu().contiguous().numpy() for t in attributes]
+        means, quats, scales, opacities, dc, rest = arrays
+        outs = [torch.from_numpy(a) for a in project_fast(means, quats, scales, opacities, dc, rest, degree, camera)]
+        ctx.camera, ctx.degree, ctx.arrays, ctx.device = camera, degree, arrays, attributes[0].device
+        ctx.mark_non_differentiable(outs[3])  # radii
+        return tuple(o.to(attributes[0].device) for o in outs)
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):  # noqa: ANN001, ANN205
+        from ._project_kernel import project_backward_fast
+
+        host = [g.detach().cpu().to(torch.float64).contiguous().numpy() for i, g in enumerate(grads) if i != 3]
+        outs = project_backward_fast(ctx.arrays, ctx.degree, ctx.camera, host)
+        return (None, None, *(torch.from_numpy(o).to(ctx.device) for o in outs))
 
 
 def _project_compiled(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
-    """``project`` for a float32 render nobody differentiates: one compiled pass (``_project_kernel``); float64
-    scenes (the exactness tests') keep the reference."""
-    from ._project_kernel import project_fast
-
-    means, quats, scales, opacities, dc, rest = (t.detach().cpu().contiguous().numpy() for t in
-        (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_dc, scene.sh_rest))  # fmt: skip
-    outs = [torch.from_numpy(a).to(scene.device)
-            for a in project_fast(means, quats, scales, opacities, dc, rest, sh_degree, camera)]  # fmt: skip
-    return Projection(*outs)
+    """``project`` for a float32 scene, forward and backward compiled; float64 scenes (the exactness tests') keep
+    the reference."""
+    return Projection(*_ProjectCompiled.apply(camera, sh_degree, scene.means, scene.quats, scene.scales,
+                                               scene.opacities, scene.sh_dc, scene.sh_rest))  # fmt: skip

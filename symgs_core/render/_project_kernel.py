@@ -1,8 +1,9 @@
-"""The EWA projection of ``projection.project`` as one compiled pass over the Gaussians, for renders nobody
-differentiates (targets, evaluations, checks): no temporaries per step, and rows off-screen skip their colour.
+"""The EWA projection of ``projection.project`` as one compiled pass over the Gaussians: no temporaries per step,
+and rows off-screen skip their colour (no render uses it, and their gradient is zero). Its backward is
+``_project_grad``.
 
 It follows ``project`` operation for operation, in float32 as the tensors are, so the two agree to rounding (a
-test holds them together); ``project`` stays the reference and the path gradients take.
+test holds them together); ``project`` stays the reference.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..sh import C0, C1, C2, C3
+from ._project_grad import project_backward
 from .projection import FOV_CLAMP, LOW_PASS
 
 _C2 = np.array(C2, dtype=np.float32)
@@ -132,4 +134,19 @@ def project_fast(means, quats, scales, opacities, dc, rest, degree, camera):  # 
                    f32(camera.fy),
                    f32(camera.cx), f32(camera.cy), camera.width, camera.height, float(camera.near), _C2, _C3,
                    *outs)  # fmt: skip
+    return outs
+
+
+def project_backward_fast(arrays, degree, camera, grads):  # noqa: ANN001, ANN201 - arrays, a Camera
+    """Gradients (float32 arrays) of ``project_fast``'s inputs ``arrays`` from its outputs' ``grads`` (float64:
+    means2d, conics, depths, colors, opacity)."""
+    means, quats, scales, opacities, dc, rest = arrays
+    g_means2d, g_conics, g_depths, g_colors, g_opacity = grads
+    outs = tuple(np.empty_like(a) for a in arrays)
+    rot, trans, center = (np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+                          for t in (camera.R, camera.t, camera.center))  # fmt: skip
+    project_backward(means, quats, scales, opacities, dc, rest, (degree + 1) ** 2, rot, trans, center,
+                     float(np.float32(camera.fx)), float(np.float32(camera.fy)), camera.width, camera.height,
+                     float(camera.near), _C2.astype(np.float64), _C3.astype(np.float64), g_means2d, g_conics,
+                     g_depths, g_colors, g_opacity, *outs)  # fmt: skip
     return outs
