@@ -45,20 +45,28 @@ class _ProjectCompiled(torch.autograd.Function):
     def forward(ctx, camera: Camera, degree: int, *attributes: Tensor):  # noqa: ANN001, ANN205
         from ._project_kernel import project_fast
 
-        arrays = [t.detach().cpu().contiguous().numpy() for t in attributes]
-        means, quats, scales, opacities, dc, rest = arrays
-        outs = [torch.from_numpy(a) for a in project_fast(means, quats, scales, opacities, dc, rest, degree, camera)]
-        ctx.camera, ctx.degree, ctx.arrays, ctx.device = camera, degree, arrays, attributes[0].device
+        means, quats, scales, opacities, dc, rest = _host(attributes)
+        device = attributes[0].device
+        outs = [torch.from_numpy(a).to(device)
+                for a in project_fast(means, quats, scales, opacities, dc, rest, degree, camera)]  # fmt: skip
+        ctx.save_for_backward(*attributes)  # autograd then refuses a backward after they changed in place
+        ctx.camera, ctx.degree = camera, degree
         ctx.mark_non_differentiable(outs[3])  # radii
-        return tuple(o.to(attributes[0].device) for o in outs)
+        return tuple(outs)
 
     @staticmethod
     def backward(ctx, *grads: Tensor):  # noqa: ANN001, ANN205
         from ._project_kernel import project_backward_fast
 
+        attributes = ctx.saved_tensors
         host = [g.detach().cpu().to(torch.float64).contiguous().numpy() for i, g in enumerate(grads) if i != 3]
-        outs = project_backward_fast(ctx.arrays, ctx.degree, ctx.camera, host)
-        return (None, None, *(torch.from_numpy(o).to(ctx.device) for o in outs))
+        outs = project_backward_fast(_host(attributes), ctx.degree, ctx.camera, host)
+        return (None, None, *(torch.from_numpy(o).to(attributes[0].device) for o in outs))
+
+
+def _host(tensors: tuple[Tensor, ...]) -> list:
+    """The compiled kernels' inputs: contiguous float32 arrays on the host."""
+    return [t.detach().cpu().contiguous().numpy() for t in tensors]
 
 
 def _project_compiled(scene: GaussianScene, camera: Camera, sh_degree: int) -> Projection:
