@@ -234,12 +234,18 @@ class RateDistortion:
             ladders.append(Ladder("sh_rest", sh_rest, palette, self.sens, exhaustive=False))
         return ladders
 
+    @cached_property
+    def _back(self) -> Tensor:
+        """Each input index's position [N] in the coding order (``order``'s inverse)."""
+        back = torch.empty_like(self.order)
+        back[self.order] = torch.arange(len(self.order), device=self.order.device)
+        return back
+
     def one_class(self) -> RateDistortion:
         """The same model with every Gaussian in step class 0, for budgets the step classes cannot meet: a class's
         steps are whole multiples of the section's, so on values already on a grid (a scene decoded from a quantised
         format, where no finer step helps) the coarser classes' error is a floor no rung goes below."""
-        back = torch.empty_like(self.order)
-        back[self.order] = torch.arange(len(self.order), device=self.order.device)
+        back = self._back
         model = RateDistortion(self.stored.select(back), self.sens.select(back), self.start,
                                classes=torch.zeros_like(self.classes))  # fmt: skip
         model.lowest = self.lowest
@@ -350,9 +356,7 @@ class RateDistortion:
             stored = stored.with_(sh_rest=stored.sh_rest * keep_band[:, :, None].to(stored.sh_rest.dtype))
         keep = choice.keep if pruning else torch.ones_like(choice.keep)
         kept = torch.sort(self.order[keep]).values
-        back = torch.empty_like(self.order)
-        back[self.order] = torch.arange(len(self.order), device=self.order.device)
-        return kept, stored.select(back[kept])
+        return kept, stored.select(self._back[kept])
 
     def steps(self, choice: Choice) -> QuantSteps:
         """The steps the choice settled on, for the report."""

@@ -56,7 +56,7 @@ class _ProjectCompiled(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads: Tensor):  # noqa: ANN001, ANN205
-        from ._project_kernel import project_backward_fast
+        from ._project_grad import project_backward_fast
 
         attributes = ctx.saved_tensors
         host = [g.detach().cpu().to(torch.float64).contiguous().numpy() for i, g in enumerate(grads) if i != 3]

@@ -15,35 +15,44 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from ..sh import C0, C1
+from ..sh import C0, C1, C2, C3
 from .projection import FOV_CLAMP, LOW_PASS
+
+_C2 = np.array(C2, dtype=np.float64)
+_C3 = np.array(C3, dtype=np.float64)
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _sh(x, y, z, rest, i, ch, m, c2, c3):  # noqa: ANN001, ANN202
-    """Channel ``ch`` of Gaussian ``i``'s higher SH towards the unit direction (x, y, z): its value and its gradient
-    with respect to the direction."""
-    val = gx = gy = gz = 0.0
+def _sh_basis(x, y, z, c2, c3):  # noqa: ANN001, ANN202
+    """The 15 higher SH basis functions (degrees 1-3, in ``sh_rest``'s order) at the unit direction (x, y, z); a
+    lower degree uses the first (degree + 1)^2 - 1."""
+    xx, yy, zz = x * x, y * y, z * z
+    return (-C1 * y, C1 * z, -C1 * x,
+            c2[0] * x * y, c2[1] * y * z, c2[2] * (2.0 * zz - xx - yy), c2[3] * x * z, c2[4] * (xx - yy),
+            c3[0] * y * (3.0 * xx - yy), c3[1] * x * y * z, c3[2] * y * (4.0 * zz - xx - yy),
+            c3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), c3[4] * x * (4.0 * zz - xx - yy), c3[5] * z * (xx - yy),
+            c3[6] * x * (xx - 3.0 * yy))  # fmt: skip
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _sh_direction_grad(x, y, z, rest, i, ch, m, c2, c3):  # noqa: ANN001, ANN202
+    """The gradient, with respect to the unit direction (x, y, z), of channel ``ch`` of Gaussian ``i``'s higher SH
+    (``m`` coefficients used, DC included): the derivatives of ``_sh_basis`` weighted by the coefficients."""
+    gx = gy = gz = 0.0
     if m > 1:
         r0, r1, r2 = rest[i, 0, ch], rest[i, 1, ch], rest[i, 2, ch]
-        val += -C1 * y * r0 + C1 * z * r1 - C1 * x * r2
         gx += -C1 * r2
         gy += -C1 * r0
         gz += C1 * r1
     if m > 4:
         xx, yy, zz = x * x, y * y, z * z
         r0, r1, r2, r3, r4 = rest[i, 3, ch], rest[i, 4, ch], rest[i, 5, ch], rest[i, 6, ch], rest[i, 7, ch]
-        val += (c2[0] * x * y * r0 + c2[1] * y * z * r1 + c2[2] * (2.0 * zz - xx - yy) * r2 + c2[3] * x * z * r3
-                + c2[4] * (xx - yy) * r4)  # fmt: skip
         gx += c2[0] * y * r0 - 2.0 * c2[2] * x * r2 + c2[3] * z * r3 + 2.0 * c2[4] * x * r4
         gy += c2[0] * x * r0 + c2[1] * z * r1 - 2.0 * c2[2] * y * r2 - 2.0 * c2[4] * y * r4
         gz += c2[1] * y * r1 + 4.0 * c2[2] * z * r2 + c2[3] * x * r3
         if m > 9:
             r0, r1, r2, r3 = rest[i, 8, ch], rest[i, 9, ch], rest[i, 10, ch], rest[i, 11, ch]
             r4, r5, r6 = rest[i, 12, ch], rest[i, 13, ch], rest[i, 14, ch]
-            val += (c3[0] * y * (3.0 * xx - yy) * r0 + c3[1] * x * y * z * r1 + c3[2] * y * (4.0 * zz - xx - yy) * r2
-                    + c3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * r3 + c3[4] * x * (4.0 * zz - xx - yy) * r4
-                    + c3[5] * z * (xx - yy) * r5 + c3[6] * x * (xx - 3.0 * yy) * r6)  # fmt: skip
             gx += (6.0 * c3[0] * x * y * r0 + c3[1] * y * z * r1 - 2.0 * c3[2] * x * y * r2 - 6.0 * c3[3] * x * z * r3
                    + c3[4] * (4.0 * zz - 3.0 * xx - yy) * r4 + 2.0 * c3[5] * x * z * r5
                    + 3.0 * c3[6] * (xx - yy) * r6)  # fmt: skip
@@ -52,33 +61,7 @@ def _sh(x, y, z, rest, i, ch, m, c2, c3):  # noqa: ANN001, ANN202
                    - 6.0 * c3[6] * x * y * r6)  # fmt: skip
             gz += (c3[1] * x * y * r1 + 8.0 * c3[2] * y * z * r2 + c3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * r3
                    + 8.0 * c3[4] * x * z * r4 + c3[5] * (xx - yy) * r5)  # fmt: skip
-    return val, gx, gy, gz
-
-
-@njit(cache=True, nogil=True, fastmath=False)
-def _sh_basis_grads(x, y, z, g, i, ch, m, c2, c3, out):  # noqa: ANN001, ANN202
-    """``g`` times each higher SH basis function at (x, y, z), into ``out[i, :, ch]``: the coefficients' gradient."""
-    if m > 1:
-        out[i, 0, ch] = -C1 * y * g
-        out[i, 1, ch] = C1 * z * g
-        out[i, 2, ch] = -C1 * x * g
-    if m > 4:
-        xx, yy, zz = x * x, y * y, z * z
-        out[i, 3, ch] = c2[0] * x * y * g
-        out[i, 4, ch] = c2[1] * y * z * g
-        out[i, 5, ch] = c2[2] * (2.0 * zz - xx - yy) * g
-        out[i, 6, ch] = c2[3] * x * z * g
-        out[i, 7, ch] = c2[4] * (xx - yy) * g
-        if m > 9:
-            out[i, 8, ch] = c3[0] * y * (3.0 * xx - yy) * g
-            out[i, 9, ch] = c3[1] * x * y * z * g
-            out[i, 10, ch] = c3[2] * y * (4.0 * zz - xx - yy) * g
-            out[i, 11, ch] = c3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * g
-            out[i, 12, ch] = c3[4] * x * (4.0 * zz - xx - yy) * g
-            out[i, 13, ch] = c3[5] * z * (xx - yy) * g
-            out[i, 14, ch] = c3[6] * x * (xx - 3.0 * yy) * g
-    for k in range(max(m - 1, 0), out.shape[1]):
-        out[i, k, ch] = 0.0
+    return gx, gy, gz
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=False)
@@ -111,12 +94,17 @@ def project_backward(
         norm = math.sqrt(dx * dx + dy * dy + dz * dz)
         dn = max(norm, 1e-12)
         dx, dy, dz = dx / dn, dy / dn, dz / dn
+        basis = _sh_basis(dx, dy, dz, c2, c3)
         gdx = gdy = gdz = 0.0
         for ch in range(3):
-            val, sx, sy, sz = _sh(dx, dy, dz, rest, i, ch, m, c2, c3)
-            g = g_colors[i, ch] if C0 * dc[i, ch] + val + 0.5 >= 0.0 else 0.0
+            val = C0 * dc[i, ch]
+            for k in range(m - 1):
+                val += basis[k] * rest[i, k, ch]
+            g = g_colors[i, ch] if val + 0.5 >= 0.0 else 0.0
             out_dc[i, ch] = C0 * g
-            _sh_basis_grads(dx, dy, dz, g, i, ch, m, c2, c3, out_rest)
+            for k in range(out_rest.shape[1]):  # bands above the degree rendered get none
+                out_rest[i, k, ch] = basis[k] * g if k < m - 1 else 0.0
+            sx, sy, sz = _sh_direction_grad(dx, dy, dz, rest, i, ch, m, c2, c3)
             gdx, gdy, gdz = gdx + g * sx, gdy + g * sy, gdz + g * sz
         gmx = gmy = gmz = 0.0
         if norm > 1e-12:
@@ -208,3 +196,18 @@ def project_backward(
         out_means[i, 0] = gmx + rot[0, 0] * gx + rot[1, 0] * gy + rot[2, 0] * gz
         out_means[i, 1] = gmy + rot[0, 1] * gx + rot[1, 1] * gy + rot[2, 1] * gz
         out_means[i, 2] = gmz + rot[0, 2] * gx + rot[1, 2] * gy + rot[2, 2] * gz
+
+
+def project_backward_fast(arrays, degree, camera, grads):  # noqa: ANN001, ANN201 - arrays, a Camera
+    """Gradients (float32 arrays) of ``_project_kernel.project_fast``'s inputs ``arrays`` from its outputs' ``grads``
+    (float64: means2d, conics, depths, colors, opacity)."""
+    means, quats, scales, opacities, dc, rest = arrays
+    g_means2d, g_conics, g_depths, g_colors, g_opacity = grads
+    outs = tuple(np.empty_like(a) for a in arrays)
+    rot, trans, center = (np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+                          for t in (camera.R, camera.t, camera.center))  # fmt: skip
+    project_backward(means, quats, scales, opacities, dc, rest, (degree + 1) ** 2, rot, trans, center,
+                     float(np.float32(camera.fx)), float(np.float32(camera.fy)), camera.width, camera.height,
+                     float(camera.near), _C2, _C3, g_means2d, g_conics, g_depths, g_colors, g_opacity,
+                     *outs)  # fmt: skip
+    return outs

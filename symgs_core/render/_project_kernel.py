@@ -14,7 +14,6 @@ import numpy as np
 from numba import njit, prange
 
 from ..sh import C0, C1, C2, C3
-from ._project_grad import project_backward
 from .projection import FOV_CLAMP, LOW_PASS
 
 _C2 = np.array(C2, dtype=np.float32)
@@ -136,17 +135,3 @@ def project_fast(means, quats, scales, opacities, dc, rest, degree, camera):  # 
                    *outs)  # fmt: skip
     return outs
 
-
-def project_backward_fast(arrays, degree, camera, grads):  # noqa: ANN001, ANN201 - arrays, a Camera
-    """Gradients (float32 arrays) of ``project_fast``'s inputs ``arrays`` from its outputs' ``grads`` (float64:
-    means2d, conics, depths, colors, opacity)."""
-    means, quats, scales, opacities, dc, rest = arrays
-    g_means2d, g_conics, g_depths, g_colors, g_opacity = grads
-    outs = tuple(np.empty_like(a) for a in arrays)
-    rot, trans, center = (np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
-                          for t in (camera.R, camera.t, camera.center))  # fmt: skip
-    project_backward(means, quats, scales, opacities, dc, rest, (degree + 1) ** 2, rot, trans, center,
-                     float(np.float32(camera.fx)), float(np.float32(camera.fy)), camera.width, camera.height,
-                     float(camera.near), _C2.astype(np.float64), _C3.astype(np.float64), g_means2d, g_conics,
-                     g_depths, g_colors, g_opacity, *outs)  # fmt: skip
-    return outs
