@@ -9,8 +9,11 @@ Inputs are projected Gaussians (float64, C-contiguous), N of them:
 
 A pixel takes a Gaussian only inside its rect, so binning by rect makes the image independent of the tile size.
 Each tile first copies its Gaussians into contiguous local arrays and splits itself into 4x4-pixel blocks with their
-own lists, so a pixel walks only the Gaussians whose rect can reach it; a cheap bound on the exponent skips most
-exp() calls that could not reach alpha 1/255. Gradients are written per (tile, Gaussian) pair and summed afterwards in
+own lists. A block walks its list once, front to back, carrying its pixels' colours and transmittances, and visits
+only the pixels inside each Gaussian's rect: each pixel sees the same Gaussians in the same order as a walk pixel by
+pixel (the same bits), without testing every pixel against every Gaussian of its block (at 1M Gaussians and 256 px,
+a fifth of the time forward and backward). A cheap bound on the exponent skips most exp() calls that could not reach
+alpha 1/255. Gradients are written per (tile, Gaussian) pair and summed afterwards in
 a fixed order, so the backward pass has no races and gives the same bits for any thread count.
 
 Compiled on first use; ``cache=True`` keeps the machine code between processes. Where numba finds no writable cache
@@ -261,38 +264,51 @@ def composite_forward(
         start = offsets[tile]
         geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
         nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
-        acc = np.empty(d)
+        acc = np.empty((BLOCK, BLOCK, d))
+        t = np.empty((BLOCK, BLOCK))
+        live = np.empty((BLOCK, BLOCK), dtype=np.bool_)
         for q in range(counts.shape[0]):
             bx0 = x0 + (q % nbx) * BLOCK
             by0 = y0 + (q // nbx) * BLOCK
-            for py in range(by0, min(by0 + BLOCK, y_end)):
-                cy = py + 0.5
-                for px in range(bx0, min(bx0 + BLOCK, x_end)):
-                    cx = px + 0.5
-                    acc[:] = 0.0
-                    t = 1.0
-                    for i in range(counts[q]):
-                        j = lists[q, i]
-                        if px < box[j, 0] or px > box[j, 1] or py < box[j, 2] or py > box[j, 3]:
+            bx1 = min(bx0 + BLOCK, x_end) - 1
+            by1 = min(by0 + BLOCK, y_end) - 1
+            acc[:] = 0.0
+            t[:] = 1.0
+            live[:] = True
+            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)
+            for i in range(counts[q]):
+                if alive == 0:
+                    break
+                j = lists[q, i]
+                u, v, a, b, cc, o, cut = geo[j, 0], geo[j, 1], geo[j, 2], geo[j, 3], geo[j, 4], geo[j, 5], geo[j, 6]
+                for py in range(max(by0, box[j, 2]), min(by1, box[j, 3]) + 1):
+                    dy = v - (py + 0.5)
+                    for px in range(max(bx0, box[j, 0]), min(bx1, box[j, 1]) + 1):
+                        ly, lx = py - by0, px - bx0
+                        if not live[ly, lx]:
                             continue
-                        dx = geo[j, 0] - cx
-                        dy = geo[j, 1] - cy
-                        power = -0.5 * (geo[j, 2] * dx * dx + geo[j, 4] * dy * dy) - geo[j, 3] * dx * dy
-                        if power < geo[j, 6]:
+                        dx = u - (px + 0.5)
+                        power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
+                        if power < cut:
                             continue
-                        alpha = min(ALPHA_MAX, geo[j, 5] * math.exp(power))
+                        alpha = min(ALPHA_MAX, o * math.exp(power))
                         if alpha < ALPHA_MIN:
                             continue
-                        t_next = t * (1.0 - alpha)
+                        t_next = t[ly, lx] * (1.0 - alpha)
                         if t_next < T_MIN:
-                            break
-                        w = alpha * t
+                            live[ly, lx] = False
+                            alive -= 1
+                            continue
+                        w = alpha * t[ly, lx]
                         for c in range(d):
-                            acc[c] += w * col[j, c]
-                        t = t_next
+                            acc[ly, lx, c] += w * col[j, c]
+                        t[ly, lx] = t_next
+            for py in range(by0, by1 + 1):
+                for px in range(bx0, bx1 + 1):
+                    ly, lx = py - by0, px - bx0
                     for c in range(d):
-                        out[py, px, c] = acc[c] + t * background[c]
-                    t_final[py, px] = t
+                        out[py, px, c] = acc[ly, lx, c] + t[ly, lx] * background[c]
+                    t_final[py, px] = t[ly, lx]
     return out, t_final
 
 
@@ -303,7 +319,7 @@ def composite_backward(
 ):
     """Gradient rows [I, 6 + D] per tile-Gaussian pair, in the order of ``ids``.
 
-    Walks each pixel front to back again with the forward's exact decisions. With S = sum_c g_c out_c + g_T T_final
+    Walks each block front to back again with the forward's exact decisions. With S = sum_c g_c out_c + g_T T_final
     and R_k the same sum over what Gaussians 0..k composited, dL/dalpha_k = T_k (g . f_k) - (S - R_k) / (1 - alpha_k).
     """
     d = feats.shape[1]
@@ -318,50 +334,64 @@ def composite_backward(
         start = offsets[tile]
         geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
         nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
-        g_pix = np.empty(d)
+        g_pix = np.empty((BLOCK, BLOCK, d))
+        total = np.empty((BLOCK, BLOCK))
+        done = np.empty((BLOCK, BLOCK))
+        t = np.empty((BLOCK, BLOCK))
+        live = np.empty((BLOCK, BLOCK), dtype=np.bool_)
         for q in range(counts.shape[0]):
             bx0 = x0 + (q % nbx) * BLOCK
             by0 = y0 + (q // nbx) * BLOCK
-            for py in range(by0, min(by0 + BLOCK, y_end)):
-                cy = py + 0.5
-                for px in range(bx0, min(bx0 + BLOCK, x_end)):
-                    cx = px + 0.5
-                    total = grad_t_final[py, px] * t_final[py, px]
+            bx1 = min(bx0 + BLOCK, x_end) - 1
+            by1 = min(by0 + BLOCK, y_end) - 1
+            for py in range(by0, by1 + 1):
+                for px in range(bx0, bx1 + 1):
+                    ly, lx = py - by0, px - bx0
+                    s = grad_t_final[py, px] * t_final[py, px]
                     for c in range(d):
-                        g_pix[c] = grad_out[py, px, c]
-                        total += g_pix[c] * out[py, px, c]
-                    done = 0.0
-                    t = 1.0
-                    for i in range(counts[q]):
-                        j = lists[q, i]
-                        if px < box[j, 0] or px > box[j, 1] or py < box[j, 2] or py > box[j, 3]:
+                        g_pix[ly, lx, c] = grad_out[py, px, c]
+                        s += grad_out[py, px, c] * out[py, px, c]
+                    total[ly, lx] = s
+            done[:] = 0.0
+            t[:] = 1.0
+            live[:] = True
+            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)
+            for i in range(counts[q]):
+                if alive == 0:
+                    break
+                j = lists[q, i]
+                e = start + j
+                u, v, a, b, cc, o, cut = geo[j, 0], geo[j, 1], geo[j, 2], geo[j, 3], geo[j, 4], geo[j, 5], geo[j, 6]
+                for py in range(max(by0, box[j, 2]), min(by1, box[j, 3]) + 1):
+                    dy = v - (py + 0.5)
+                    for px in range(max(bx0, box[j, 0]), min(bx1, box[j, 1]) + 1):
+                        ly, lx = py - by0, px - bx0
+                        if not live[ly, lx]:
                             continue
-                        dx = geo[j, 0] - cx
-                        dy = geo[j, 1] - cy
-                        a = geo[j, 2]
-                        b = geo[j, 3]
-                        cc = geo[j, 4]
+                        dx = u - (px + 0.5)
                         power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
-                        if power < geo[j, 6]:
+                        if power < cut:
                             continue
                         gauss = math.exp(power)
-                        raw = geo[j, 5] * gauss
+                        raw = o * gauss
                         alpha = min(ALPHA_MAX, raw)
                         if alpha < ALPHA_MIN:
                             continue
-                        t_next = t * (1.0 - alpha)
+                        t_here = t[ly, lx]
+                        t_next = t_here * (1.0 - alpha)
                         if t_next < T_MIN:
-                            break
-                        e = start + j
-                        w = alpha * t
+                            live[ly, lx] = False
+                            alive -= 1
+                            continue
+                        w = alpha * t_here
                         gf = 0.0
                         for c in range(d):
-                            gf += g_pix[c] * col[j, c]
-                            grads[e, GEOM_GRADS + c] += g_pix[c] * w
-                        done += w * gf
+                            gf += g_pix[ly, lx, c] * col[j, c]
+                            grads[e, GEOM_GRADS + c] += g_pix[ly, lx, c] * w
+                        done[ly, lx] += w * gf
                         # Where alpha is clamped at ALPHA_MAX it no longer depends on opacity or geometry.
                         if raw <= ALPHA_MAX:
-                            d_alpha = t * gf - (total - done) / (1.0 - alpha)
+                            d_alpha = t_here * gf - (total[ly, lx] - done[ly, lx]) / (1.0 - alpha)
                             grads[e, 5] += gauss * d_alpha
                             d_power = raw * d_alpha
                             grads[e, 0] -= d_power * (a * dx + b * dy)
@@ -369,7 +399,7 @@ def composite_backward(
                             grads[e, 2] -= 0.5 * d_power * dx * dx
                             grads[e, 3] -= d_power * dx * dy
                             grads[e, 4] -= 0.5 * d_power * dy * dy
-                        t = t_next
+                        t[ly, lx] = t_next
     return grads
 
 
