@@ -106,8 +106,9 @@ def _reassign(rows: torch.Tensor, entries: torch.Tensor, labels: np.ndarray, mov
     return labels
 
 
-def _kmeans(rows: np.ndarray, distinct: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lloyd's k-means of ``rows`` [R, D] to ``count`` entries seeded with a random sample of ``distinct`` rows."""
+def _kmeans(rows: np.ndarray, distinct: np.ndarray, inverse: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lloyd's k-means of ``rows`` [R, D] to ``count`` entries seeded with a random sample of ``distinct`` rows
+    (rows[i] == distinct[inverse[i]])."""
     rng = np.random.default_rng(SEED)
     fitted = np.arange(len(rows))
     if len(rows) > FIT_ROWS:
@@ -126,11 +127,14 @@ def _kmeans(rows: np.ndarray, distinct: np.ndarray, count: int) -> tuple[np.ndar
         if not moved.any():
             break
     entries = _means(sample, labels, entries, moved)
-    every_label = np.empty(len(rows), dtype=np.int64)
-    rest = np.ones(len(rows), dtype=bool)
-    rest[fitted] = False
-    every_label[fitted] = _reassign(sample, entries, labels, moved)
-    every_label[rest] = _nearest(every[torch.from_numpy(rest)], entries)[0]
+    # Every row is assigned as its distinct row is, each distinct row searched once: scenes decoded from a palette
+    # repeat their rows (playbot at 1M: 131k distinct rows of 1M), and the search over every entry costs the most.
+    label_of = np.empty(len(distinct), dtype=np.int64)
+    label_of[inverse[fitted]] = _reassign(sample, entries, labels, moved)
+    rest = np.ones(len(distinct), dtype=bool)
+    rest[inverse[fitted]] = False
+    label_of[rest] = _nearest(torch.from_numpy(distinct[rest]), entries)[0]
+    every_label = label_of[inverse]
     # One last update on every row: the entries become the means of the rows that use them.
     return _means(every, every_label, entries, np.ones(count, dtype=bool)).numpy(), every_label
 
@@ -154,7 +158,7 @@ def fit_palette(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     distinct = rows[first]
     if len(distinct) <= size:
         return distinct, inverse.reshape(-1).astype(np.int64)
-    return _kmeans(rows, distinct, size)
+    return _kmeans(rows, distinct, inverse.reshape(-1), size)
 
 
 def _digest(rows: np.ndarray) -> bytes:
