@@ -64,6 +64,23 @@ def _sh_direction_grad(x, y, z, rest, i, ch, m, c2, c3):  # noqa: ANN001, ANN202
     return gx, gy, gz
 
 
+@njit(cache=True, nogil=True)
+def _no_gradient(i, g_means2d, g_conics, g_depths, g_colors, g_opacity):  # noqa: ANN001, ANN202
+    return (g_means2d[i, 0] == 0.0 and g_means2d[i, 1] == 0.0 and g_conics[i, 0] == 0.0 and g_conics[i, 1] == 0.0
+            and g_conics[i, 2] == 0.0 and g_depths[i] == 0.0 and g_colors[i, 0] == 0.0 and g_colors[i, 1] == 0.0
+            and g_colors[i, 2] == 0.0 and g_opacity[i] == 0.0)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _zero(i, out_means, out_quats, out_scales, out_opacities, out_dc, out_rest):  # noqa: ANN001, ANN202
+    out_means[i, :] = 0.0
+    out_quats[i, :] = 0.0
+    out_scales[i, :] = 0.0
+    out_opacities[i] = 0.0
+    out_dc[i, :] = 0.0
+    out_rest[i, :, :] = 0.0
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=False)
 def project_backward(
     means: np.ndarray,  # [N, 3] f32, the forward's inputs
@@ -86,6 +103,10 @@ def project_backward(
     lim_x = FOV_CLAMP * 0.5 * width / fx
     lim_y = FOV_CLAMP * 0.5 * height / fy
     for i in prange(n):
+        if _no_gradient(i, g_means2d, g_conics, g_depths, g_colors, g_opacity):
+            # Gaussians no pixel took (culled, or behind what saturated): 30-90% of a 1M-Gaussian view's.
+            _zero(i, out_means, out_quats, out_scales, out_opacities, out_dc, out_rest)
+            continue
         s = 1.0 / (1.0 + math.exp(-float(opacities[i])))
         out_opacities[i] = g_opacity[i] * s * (1.0 - s)
 

@@ -388,3 +388,35 @@ def test_compiled_projection_gradients_are_autograd_through_the_reference(stored
                                        msg=f"{name} from {output}")  # fmt: skip
     behind = cam.R.double() @ scene.means.double().T  # rows with a constant placeholder depth still get gradients
     assert (behind[2] + cam.t[2] <= cam.near).any()
+
+
+def test_gaussians_no_pixel_took_get_zero_gradients_and_the_others_theirs() -> None:
+    """The compiled backward skips Gaussians whose every output gradient is zero (most of a large view's): they get
+    exact zeros, and every other Gaussian, whichever single output it has a gradient from, the same gradients as
+    when nothing is skipped."""
+    from symgs_core.render._cpu import _project_compiled
+
+    n = 300
+    scene = random_scene(n, 3, seed=12).map(lambda t: t.float())
+    cam = make_camera()
+    g = torch.Generator().manual_seed(4)
+    shapes = ((n, 2), (n, 3), (n,), (n, 3), (n,))
+    weights = [torch.randn(shape, generator=g, dtype=torch.float64) for shape in shapes]
+    took = torch.arange(n) % 6  # 0: no gradient from any output; 1..5: from that output alone
+    masked = [w * (took == k + 1).double().reshape(-1, *([1] * (w.dim() - 1))) for k, w in enumerate(weights)]
+
+    def loss(ws):  # noqa: ANN001, ANN202
+        outputs = ("means2d", "conics", "depths", "colors", "opacity")
+        return lambda s: sum((getattr(_project_compiled(s, cam, 3), o).double() * w).sum() for o, w in zip(outputs, ws))
+
+    _, full = grads_of(scene, loss(weights))
+    _, some = grads_of(scene, loss(masked))
+    for k in range(1, 6):
+        alone = [w if i == k - 1 else torch.zeros_like(w) for i, w in enumerate(weights)]
+        _, one = grads_of(scene, loss(alone))
+        for name in ATTRIBUTES:
+            assert torch.equal(some[name][took == k], one[name][took == k]), (name, k)
+    for name in ATTRIBUTES:
+        skipped = some[name][took == 0]
+        assert torch.equal(skipped, torch.zeros_like(skipped)) and not skipped.signbit().any(), name
+        assert full[name][took == 0].abs().sum() > 0, name  # they have gradients when their outputs do
