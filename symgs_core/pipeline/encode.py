@@ -146,7 +146,9 @@ def prune(
     keep_all = torch.ones(n, dtype=torch.bool, device=HOST)  # masks over the rate model's set, which lives there
     best = (rd.choose(_AIM * allowed).bits, keep_all, 0.0)
     predicted = rd.sens.removal(rd.stored.opacities)  # [N] in the rate model's order
-    checked: float | None = None  # the state's own PSNR on ``check``, rendered once a share needs it
+    # The state's own PSNR on ``check``, rendered once a share needs it; where the fitting views are its own renders
+    # (``psnr_before`` infinite: targets rendered from the input), so are the check views' targets.
+    checked: float | None = psnr_before if math.isinf(psnr_before) else None
     for share in reversed(PRUNE_SHARES):
         if should_stop is not None and should_stop():
             break

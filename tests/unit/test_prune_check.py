@@ -70,3 +70,22 @@ def test_check_views_are_spread_over_the_training_set() -> None:
     assert check_views(views, 16) == list(range(0, 128, 8))  # type: ignore[arg-type]
     assert check_views(views[:5], 16) == list(range(5))  # type: ignore[arg-type]
     assert check_views([], 16) == []
+
+
+def test_a_state_judged_against_its_own_renders_is_not_rendered_on_the_check_views(monkeypatch) -> None:  # noqa: ANN001
+    """Against renders of the input (``psnr_before`` infinite) the check views' targets are the state's own renders
+    too, so its PSNR there is known without a render; what the check decides is unchanged."""
+    from symgs_core.pipeline import encode
+
+    scene = _wall_and_hidden()
+    state = LevelState.plain(scene)
+    front, back = _views(scene, 1.0), _views(scene, -1.0)
+    rd = RateDistortion(state.stored, sensitivity(state, front, torch.zeros(3)), QuantSteps())
+    rendered: list[int] = []
+    real = encode.evaluate
+    monkeypatch.setattr(encode, "evaluate", lambda s, views, *a, **k: (
+        rendered.append(len(s)) if views is back else None, real(s, views, *a, **k))[1])  # fmt: skip
+    keep, removed = prune(state, rd, front, torch.zeros(3), allowed=psnr_to_mse(40.0), psnr_before=math.inf,
+                          check=back)  # fmt: skip
+    assert keep[torch.arange(WALL, WALL + HIDDEN)].all() and removed < 0.5 * psnr_to_mse(40.0)
+    assert rendered and len(scene) not in rendered  # the shares were checked, the whole state was not rendered
