@@ -34,10 +34,10 @@ import numpy as np
 
 from ..ply import OPACITY_LOGIT_MAX, OPACITY_LOGIT_MIN
 from .classes import decode_groups, encode_groups, groups_bits, multipliers
-from .entropy import CODING_LEVEL, ESTIMATE_LEVEL, decode_table, encode_table, table_bits
+from .entropy import CODING_LEVEL, ESTIMATE_LEVEL, PARALLEL_SYMBOLS, decode_table, encode_table, table_bits
 from .errors import ArchiveError
 from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, interleave
-from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, join_parts, split_parts
+from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, coding_pool, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
@@ -226,8 +226,11 @@ def _table(rows: np.ndarray, flat: bool) -> np.ndarray:
 def _smaller(q: np.ndarray, classes: np.ndarray | None, flat: bool = False) -> tuple[bytes, bool]:
     """The smaller coding of RGB symbol rows ``q`` [N, ..., 3], a table per class (``_table``): as they are, or
     decorrelated."""
-    code = lambda rows: encode_table(_table(rows, flat))  # noqa: E731
-    plain, mixed = encode_groups(q, classes, code), encode_groups(_decorrelate(q), classes, code)
+    code = lambda rows: encode_groups(rows, classes, lambda r: encode_table(_table(r, flat)))  # noqa: E731
+    # A flat table codes on one thread (``encode_table`` spreads columns), so the two codings go side by side; a
+    # table of columns spreads them itself.
+    both = (q, _decorrelate(q))
+    plain, mixed = coding_pool().map(code, both) if flat and q.size >= PARALLEL_SYMBOLS else map(code, both)
     return (mixed, True) if len(mixed) < len(plain) else (plain, False)
 
 
