@@ -237,8 +237,9 @@ def _smaller(q: np.ndarray, classes: np.ndarray | None, flat: bool = False) -> t
 def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, flat: bool = False,
                   level: int = ESTIMATE_LEVEL) -> float:  # fmt: skip
     """About the bits of ``_smaller(q, classes, flat)``'s coding (its zstd streams at ``level``)."""
-    bits = lambda rows: table_bits(_table(rows, flat), level)  # noqa: E731
-    return min(groups_bits(q, classes, bits), groups_bits(_decorrelate(q), classes, bits))
+    bits = lambda rows: groups_bits(rows, classes, lambda r: table_bits(_table(r, flat), level))  # noqa: E731
+    both = (q, _decorrelate(q))
+    return min(coding_pool().map(bits, both) if flat and q.size >= PARALLEL_SYMBOLS else map(bits, both))
 
 
 def _read(codec: str, c: int) -> Callable[[bytes, int], np.ndarray]:
