@@ -18,7 +18,7 @@ of the frame: 36.5 dB full frame, 26.1 dB on its own pixels). A floor holds on b
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
@@ -366,11 +366,15 @@ def evaluate(scene: GaussianScene, views: Sequence[View], background: Tensor, *,
 
 
 @torch.no_grad()
-def worst_psnr(scene: GaussianScene, views: Sequence[View], background: Tensor, *, below: float) -> float:
+def worst_psnr(
+    scene: GaussianScene, views: Sequence[View], background: Tensor, *, below: float,
+    settled: Callable[[float], bool] | None = None,
+) -> float:  # fmt: skip
     """``evaluate(...).worst``, but once the views rendered so far put it below ``below`` whatever the rest show,
-    the rest are not rendered and that bound is returned instead (a PSNR below ``below``, no lower than the true
-    one). Squared errors only add up: the sums over some views, divided by every view's pixels, bound the mean
-    from below. A decision that only asks "below ``below``?" gets the same answer from fewer renders."""
+    or bound it where ``settled`` says a PSNR no higher decides the question, the rest are not rendered and that
+    bound is returned instead (no lower than the true PSNR). Squared errors only add up: the sums over some views,
+    divided by every view's pixels, bound the mean from below. A decision that only asks "below ``below``?" gets
+    the same answer from fewer renders."""
     if not views:
         raise ValueError("worst_psnr needs at least one view")
     pixels = sum(v.mask.numel() for v in views)
@@ -381,6 +385,6 @@ def worst_psnr(scene: GaussianScene, views: Sequence[View], background: Tensor, 
         full, obj, _ = sums.tolist()
         psnr = mse_to_psnr(full / pixels)
         bound = min(psnr, mse_to_psnr(obj / object_pixels) if object_pixels else psnr)
-        if seen < pixels and bound < below:
+        if seen < pixels and (bound < below or (settled is not None and settled(bound))):
             return bound
     return bound

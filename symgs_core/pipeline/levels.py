@@ -185,13 +185,29 @@ def plan_attempts(
     attempts = []
     for m in worth:
         candidate = apply_mirror(state, m.plane, m.left, m.right)
-        before = worst_psnr(candidate.expanded(), views.fit, views.background, below=lowest - TUNE_GAIN)
+        share = len(candidate.stored) / max(len(state.stored), 1)
+
+        def predict(before: float, share: float = share) -> float:
+            assert rate is not None
+            return best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
+
+        # With a rate model, rendering also stops once a start no higher than the views seen so far allow cannot pay
+        # (the prediction only grows as the start falls): most memberships of a scene that keeps no level.
+        cut: list[float] = []
+
+        def unpaid(bound: float, cut: list[float] = cut, predict: Callable[[float], float] = predict) -> bool:
+            if predict(bound) < best_bytes:
+                return False
+            cut.append(bound)
+            return True
+
+        before = worst_psnr(candidate.expanded(), views.fit, views.background, below=lowest - TUNE_GAIN,
+                            settled=None if rate is None else unpaid)  # fmt: skip
         predicted, settled = None, False
         if rate is not None:
-            share = len(candidate.stored) / max(len(state.stored), 1)
-            predicted = best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
+            predicted = predict(before)
             settled = not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
-        attempts.append(Attempt(m, before, predicted, settled, bounded=before < lowest - TUNE_GAIN))
+        attempts.append(Attempt(m, before, predicted, settled, bounded=before < lowest - TUNE_GAIN or bool(cut)))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
         if a.predicted is None:
@@ -260,7 +276,8 @@ def _unpaid(attempt: Attempt, floor: float, best_bytes: int) -> str:
     if not math.isfinite(attempt.predicted):
         return f"{start}; even {TUNE_GAIN:g} dB more would leave the codec no room under the floor {floor:.2f} dB"
     return (f"{start}; even {TUNE_GAIN:g} dB more would leave the codec so little of the budget that the archive "
-            f"is predicted at {attempt.predicted:,.0f} bytes, not below {best_bytes:,}")
+            f"is predicted at {'no less than ' if attempt.bounded else ''}{attempt.predicted:,.0f} bytes, not below "
+            f"{best_bytes:,}")
 
 
 def level_notes(records: list[LevelReport], gaussians: int, *, photographs: bool) -> tuple[str, ...]:

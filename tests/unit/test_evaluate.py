@@ -46,3 +46,19 @@ def test_it_stops_once_the_first_views_settle_the_question(scene_and_views) -> N
     expected = min(first.psnr - 10 * math.log10(frames),
                    first.psnr_object - 10 * math.log10(share([v.mask for v in black])))  # fmt: skip
     assert bound == pytest.approx(expected, abs=1e-6)
+
+
+def test_a_settling_question_stops_it_as_soon_as_a_bound_answers(scene_and_views) -> None:  # noqa: ANN001
+    """``settled`` is asked about each bound while views remain: the first bound it accepts is returned; one it never
+    accepts leaves the exact PSNR, and it is never asked once every view is rendered."""
+    _, fit, damaged = scene_and_views
+    measured = evaluate(damaged, fit, torch.zeros(3), with_ssim=False).worst
+    asked: list[float] = []
+    never = lambda bound: asked.append(bound) or False  # noqa: E731
+    assert worst_psnr(damaged, fit, torch.zeros(3), below=-math.inf, settled=never) == pytest.approx(measured)
+    assert len(asked) == len(fit) // BOUND_BATCH - 1 and all(b > measured for b in asked)
+    first = asked[0]
+    asked.clear()
+    at_once = lambda bound: asked.append(bound) or True  # noqa: E731
+    assert worst_psnr(damaged, fit, torch.zeros(3), below=-math.inf, settled=at_once) == first
+    assert asked == [first]

@@ -3,7 +3,10 @@ the straight-through rounding of a quantisation-aware fine-tune."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 import torch
 from scipy.spatial import cKDTree
 
@@ -116,3 +119,36 @@ def test_straight_through_rounding() -> None:
     (shown["means"].sum() + shown["sh_dc"].sum()).backward()
     assert torch.equal(params["means"].grad, torch.ones_like(params["means"]))  # the rounding passes the gradient
     assert torch.equal(params["sh_dc"].grad, torch.ones_like(params["sh_dc"]))
+
+
+def test_a_membership_that_cannot_pay_is_rendered_only_until_it_is_known(monkeypatch) -> None:  # noqa: ANN001
+    """With a rate model, a membership whose archive is predicted no smaller than the best even from the highest
+    start the views rendered so far allow is not rendered further: its start is reported as that bound."""
+    from symgs_core.pipeline import levels
+    from symgs_core.pipeline.encode import Rate
+    from symgs_core.views import BOUND_BATCH, evaluate
+
+    scene = synthetic_scene("global", n=400, seed=1, sh_degree=1).scene
+    views = self_supervised_views(scene, train=2, fit=4 * BOUND_BATCH, eval=2, resolution=32, eval_resolution=32,
+                                  background=torch.zeros(3))  # fmt: skip
+    state = LevelState.plain(scene)
+    # A plane the scene is not symmetric about: the reflected half renders with errors, view by view.
+    centre = float(scene.means[:, 2].median())
+    left = torch.nonzero(scene.means[:, 2] < centre).squeeze(1)
+    right = torch.nonzero(scene.means[:, 2] >= centre).squeeze(1)
+    member = levels.Membership(Plane((0.0, 0.0, 1.0), centre), left, right, 1.0, 1.0, None)
+    candidate = apply_mirror(state, member.plane, left, right).expanded()
+    true = evaluate(candidate, views.fit, views.background, with_ssim=False).worst
+    rendered: list[int] = []
+    real = levels.worst_psnr
+    monkeypatch.setattr(levels, "worst_psnr", lambda *a, **k: (rendered.append(1), real(*a, **k))[1])
+    steep = Rate(lambda before, after: 1.0 if after >= true + 50 else 10.0)  # pays only far above where it starts
+    (attempt,) = levels.plan_attempts(state, math.inf, [member], views, floor=0.0, rate=steep, best_bytes=1000)
+    assert attempt.bounded and true < attempt.psnr_before and attempt.predicted >= 1000
+    assert not attempt.pays(0.0, 1000)
+    # The bound came from the first batch alone: the bound over every view but the first batch's is lower.
+    first = real(candidate, views.fit, views.background, below=-math.inf, settled=lambda bound: True)
+    assert attempt.psnr_before == first
+    flat = Rate(lambda before, after: 0.5)  # pays from any start: every view is rendered
+    (paying,) = levels.plan_attempts(state, math.inf, [member], views, floor=0.0, rate=flat, best_bytes=1000)
+    assert not paying.bounded and paying.psnr_before == pytest.approx(true)
