@@ -246,6 +246,20 @@ def _blocks(box, x0, y0, x_end, y_end):
     return nbx, counts, lists
 
 
+@_compile(parallel=False)
+def _block(q, nbx, x0, y0, x_end, y_end):
+    """Pixel bounds (x0, y0, x1, y1), inclusive, of block ``q`` of the tile at (x0, y0) clipped to (x_end, y_end)."""
+    bx0 = x0 + (q % nbx) * BLOCK
+    by0 = y0 + (q // nbx) * BLOCK
+    return bx0, by0, min(bx0 + BLOCK, x_end) - 1, min(by0 + BLOCK, y_end) - 1
+
+
+@_compile(parallel=False)
+def _splat(geo, j):
+    """Gaussian ``j``'s row of ``_gather``'s geometry: u, v, a, b, c, opacity, exponent cut."""
+    return geo[j, 0], geo[j, 1], geo[j, 2], geo[j, 3], geo[j, 4], geo[j, 5], geo[j, 6]
+
+
 @_compile(parallel=True)
 def composite_forward(
     means2d, conics, feats, opacity, rects, offsets, ids, order, background, width, height, tile_size
@@ -268,19 +282,16 @@ def composite_forward(
         t = np.empty((BLOCK, BLOCK))
         live = np.empty((BLOCK, BLOCK), dtype=np.bool_)
         for q in range(counts.shape[0]):
-            bx0 = x0 + (q % nbx) * BLOCK
-            by0 = y0 + (q // nbx) * BLOCK
-            bx1 = min(bx0 + BLOCK, x_end) - 1
-            by1 = min(by0 + BLOCK, y_end) - 1
+            bx0, by0, bx1, by1 = _block(q, nbx, x0, y0, x_end, y_end)
             acc[:] = 0.0
             t[:] = 1.0
             live[:] = True
-            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)
+            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)  # pixels still compositing
             for i in range(counts[q]):
                 if alive == 0:
                     break
                 j = lists[q, i]
-                u, v, a, b, cc, o, cut = geo[j, 0], geo[j, 1], geo[j, 2], geo[j, 3], geo[j, 4], geo[j, 5], geo[j, 6]
+                u, v, a, b, cc, o, cut = _splat(geo, j)
                 for py in range(max(by0, box[j, 2]), min(by1, box[j, 3]) + 1):
                     dy = v - (py + 0.5)
                     for px in range(max(bx0, box[j, 0]), min(bx1, box[j, 1]) + 1):
@@ -340,10 +351,7 @@ def composite_backward(
         t = np.empty((BLOCK, BLOCK))
         live = np.empty((BLOCK, BLOCK), dtype=np.bool_)
         for q in range(counts.shape[0]):
-            bx0 = x0 + (q % nbx) * BLOCK
-            by0 = y0 + (q // nbx) * BLOCK
-            bx1 = min(bx0 + BLOCK, x_end) - 1
-            by1 = min(by0 + BLOCK, y_end) - 1
+            bx0, by0, bx1, by1 = _block(q, nbx, x0, y0, x_end, y_end)
             for py in range(by0, by1 + 1):
                 for px in range(bx0, bx1 + 1):
                     ly, lx = py - by0, px - bx0
@@ -355,13 +363,13 @@ def composite_backward(
             done[:] = 0.0
             t[:] = 1.0
             live[:] = True
-            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)
+            alive = (bx1 - bx0 + 1) * (by1 - by0 + 1)  # pixels still compositing
             for i in range(counts[q]):
                 if alive == 0:
                     break
                 j = lists[q, i]
                 e = start + j
-                u, v, a, b, cc, o, cut = geo[j, 0], geo[j, 1], geo[j, 2], geo[j, 3], geo[j, 4], geo[j, 5], geo[j, 6]
+                u, v, a, b, cc, o, cut = _splat(geo, j)
                 for py in range(max(by0, box[j, 2]), min(by1, box[j, 3]) + 1):
                     dy = v - (py + 0.5)
                     for px in range(max(bx0, box[j, 0]), min(bx1, box[j, 1]) + 1):
