@@ -10,6 +10,7 @@ many levels it gets, and a scene without symmetry keeps the plain codec's archiv
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -186,28 +187,13 @@ def plan_attempts(
     for m in worth:
         candidate = apply_mirror(state, m.plane, m.left, m.right)
         share = len(candidate.stored) / max(len(state.stored), 1)
-
-        def predict(before: float, share: float = share) -> float:
-            assert rate is not None
-            return best_bytes * share * rate(psnr, min(before + TUNE_GAIN, psnr))
-
-        # With a rate model, rendering also stops once a start no higher than the views seen so far allow cannot pay
-        # (the prediction only grows as the start falls): most memberships of a scene that keeps no level.
-        cut: list[float] = []
-
-        def unpaid(bound: float, cut: list[float] = cut, predict: Callable[[float], float] = predict) -> bool:
-            if predict(bound) < best_bytes:
-                return False
-            cut.append(bound)
-            return True
-
-        before = worst_psnr(candidate.expanded(), views.fit, views.background, below=lowest - TUNE_GAIN,
-                            settled=None if rate is None else unpaid)  # fmt: skip
+        predict = None if rate is None else functools.partial(_predicted, rate, psnr, best_bytes * share)
+        before, bounded = _start(candidate, views, lowest - TUNE_GAIN, predict, best_bytes)
         predicted, settled = None, False
-        if rate is not None:
+        if rate is not None and predict is not None:
             predicted = predict(before)
             settled = not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
-        attempts.append(Attempt(m, before, predicted, settled, bounded=before < lowest - TUNE_GAIN or bool(cut)))
+        attempts.append(Attempt(m, before, predicted, settled, bounded=bounded))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
         if a.predicted is None:
@@ -215,6 +201,32 @@ def plan_attempts(
         return not a.pays(floor, best_bytes), a.predicted, -a.psnr_before  # then the closest to the floor first
 
     return sorted(attempts, key=rank)[:MAX_ATTEMPTS]
+
+
+def _predicted(rate: Rate, psnr: float, now: float, before: float) -> float:
+    """The bytes of a membership's archive (``now`` at the state's PSNR ``psnr``) should its fine-tune take it
+    ``TUNE_GAIN`` dB above ``before``, where it starts."""
+    return now * rate(psnr, min(before + TUNE_GAIN, psnr))
+
+
+def _start(
+    candidate: LevelState, views: ViewSet, below: float, predict: Callable[[float], float] | None, best_bytes: int
+) -> tuple[float, bool]:
+    """A membership's fitting PSNR as it starts, and whether that is a bound: its renders stop once the views so far
+    put it below ``below`` or, with a rate model (``predict``), once a start no higher than they allow cannot pay
+    (the prediction only grows as the start falls): most memberships of a scene that keeps no level."""
+    cut: list[float] = []
+
+    def unpaid(bound: float) -> bool:
+        assert predict is not None
+        if predict(bound) < best_bytes:
+            return False
+        cut.append(bound)
+        return True
+
+    before = worst_psnr(candidate.expanded(), views.fit, views.background, below=below,
+                        settled=None if predict is None else unpaid)  # fmt: skip
+    return before, before < below or bool(cut)
 
 
 def hopeless(psnr_before: float, floor: float) -> bool:
