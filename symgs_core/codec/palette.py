@@ -162,7 +162,7 @@ def fit_palette(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _digest(rows: np.ndarray) -> bytes:
-    digest = hashlib.blake2b(np.ascontiguousarray(rows).reshape(-1).view(np.uint8), digest_size=20)  # no copy
+    digest = hashlib.blake2b(np.ascontiguousarray(rows).reshape(-1).view(np.uint8).data, digest_size=20)  # no copy
     digest.update(repr((rows.shape, rows.dtype.str)).encode())
     return digest.digest()
 
