@@ -129,10 +129,11 @@ def _kmeans(rows: np.ndarray, distinct: np.ndarray, inverse: np.ndarray, count: 
     entries = _means(sample, labels, entries, moved)
     # Every row is assigned as its distinct row is, each distinct row searched once: scenes decoded from a palette
     # repeat their rows (playbot at 1M: 131k distinct rows of 1M), and the search over every entry costs the most.
+    sampled = inverse[fitted]
     label_of = np.empty(len(distinct), dtype=np.int64)
-    label_of[inverse[fitted]] = _reassign(sample, entries, labels, moved)
+    label_of[sampled] = _reassign(sample, entries, labels, moved)
     rest = np.ones(len(distinct), dtype=bool)
-    rest[inverse[fitted]] = False
+    rest[sampled] = False
     label_of[rest] = _nearest(torch.from_numpy(distinct[rest]), entries)[0]
     every_label = label_of[inverse]
     # One last update on every row: the entries become the means of the rows that use them.

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -40,6 +40,7 @@ from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, 
 from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, coding_pool, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
+_T = TypeVar("_T")
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
 MAX_GRID_LEVELS = 4096  # distinct values up to which an attribute is tested for a grid of its own
 GRID_TOLERANCE = 1e-3  # in grid cells: float32 storage of grid values stays far below it
@@ -226,20 +227,23 @@ def _table(rows: np.ndarray, flat: bool) -> np.ndarray:
 def _smaller(q: np.ndarray, classes: np.ndarray | None, flat: bool = False) -> tuple[bytes, bool]:
     """The smaller coding of RGB symbol rows ``q`` [N, ..., 3], a table per class (``_table``): as they are, or
     decorrelated."""
-    code = lambda rows: encode_groups(rows, classes, lambda r: encode_table(_table(r, flat)))  # noqa: E731
-    # A flat table codes on one thread (``encode_table`` spreads columns), so the two codings go side by side; a
-    # table of columns spreads them itself.
-    both = (q, _decorrelate(q))
-    plain, mixed = coding_pool().map(code, both) if flat and q.size >= PARALLEL_SYMBOLS else map(code, both)
+    plain, mixed = _both_ways(lambda rows: encode_groups(rows, classes, lambda r: encode_table(_table(r, flat))), q,
+                              flat)  # fmt: skip
     return (mixed, True) if len(mixed) < len(plain) else (plain, False)
 
 
 def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, flat: bool = False,
                   level: int = ESTIMATE_LEVEL) -> float:  # fmt: skip
     """About the bits of ``_smaller(q, classes, flat)``'s coding (its zstd streams at ``level``)."""
-    bits = lambda rows: groups_bits(rows, classes, lambda r: table_bits(_table(r, flat), level))  # noqa: E731
+    return min(_both_ways(lambda rows: groups_bits(rows, classes, lambda r: table_bits(_table(r, flat), level)), q,
+                          flat))  # fmt: skip
+
+
+def _both_ways(fn: Callable[[np.ndarray], _T], q: np.ndarray, flat: bool) -> list[_T]:
+    """``fn`` of the symbol rows ``q`` as they are and decorrelated. A flat table codes on one thread
+    (``encode_table`` spreads a table's columns), so two large ones go side by side."""
     both = (q, _decorrelate(q))
-    return min(coding_pool().map(bits, both) if flat and q.size >= PARALLEL_SYMBOLS else map(bits, both))
+    return list(coding_pool().map(fn, both) if flat and q.size >= PARALLEL_SYMBOLS else map(fn, both))
 
 
 def _read(codec: str, c: int) -> Callable[[bytes, int], np.ndarray]:

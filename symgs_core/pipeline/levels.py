@@ -189,10 +189,8 @@ def plan_attempts(
         share = len(candidate.stored) / max(len(state.stored), 1)
         predict = None if rate is None else functools.partial(_predicted, rate, psnr, best_bytes * share)
         before, bounded = _start(candidate, views, lowest - TUNE_GAIN, predict, best_bytes)
-        predicted, settled = None, False
-        if rate is not None and predict is not None:
-            predicted = predict(before)
-            settled = not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
+        predicted = None if predict is None else predict(before)
+        settled = rate is not None and not photographs and rate(psnr, min(before, psnr)) <= 1.0 + SETTLED_COST
         attempts.append(Attempt(m, before, predicted, settled, bounded=bounded))
 
     def rank(a: Attempt) -> tuple[bool, float, float]:  # stable: loosest first where no model ranks them
