@@ -52,6 +52,7 @@ CACHED_FITS = 4
 SH_DEGREES = {0: 0, 3: 1, 8: 2, 15: 3}  # rows of sh_rest -> SH degree
 
 _fits: OrderedDict[tuple[bytes, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_row_fits: OrderedDict[tuple[bytes, int, int], tuple[RowWeights | None, _Fit]] = OrderedDict()  # ShPaletteCodec._fit
 _fits_lock = threading.Lock()
 
 
@@ -163,7 +164,8 @@ def fit_palette(rows: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _digest(rows: np.ndarray) -> bytes:
-    digest = hashlib.blake2b(np.ascontiguousarray(rows).reshape(-1).view(np.uint8).data, digest_size=20)  # no copy
+    # SHA-256 runs in the CPU's SHA instructions where it has them: twice blake2b's speed on a million SH rows.
+    digest = hashlib.sha256(np.ascontiguousarray(rows).reshape(-1).view(np.uint8).data)  # no copy
     digest.update(repr((rows.shape, rows.dtype.str)).encode())
     return digest.digest()
 
@@ -278,13 +280,26 @@ def _band_bits(symbols: np.ndarray, classes: np.ndarray, mixed: bool) -> list[fl
 
 
 @dataclass(frozen=True)
-class _Layout:
-    """A palette as ``ShPaletteCodec`` stores it: its distinct grid points [E, K, 3] in units of each band's step
-    (point 0 the zero one, where dropped rows go), each point's step class [E], each row's point [N], and the entry
-    orders tried (``use``: by decreasing use; ``first``: by first use), each [E'] of the points some row uses."""
+class _Fit:
+    """What a palette of one size makes of a set of rows [N, K, 3], whatever its steps: the fitted entries [E, K, 3]
+    (float64), each entry's step class [E], and each row's entry [N] counted from 1 (0: the zero entry)."""
 
+    entries: np.ndarray
+    classes: np.ndarray
+    index: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """A palette as ``ShPaletteCodec`` stores it: its distinct grid points [P, K, 3] in units of each band's step
+    (point 0 the zero one, where dropped rows go), each point's step class [P], each fitted entry's point [E + 1]
+    (``merged``, the zero entry first), each row's point [N], and the entry orders tried (``use``: by decreasing use;
+    ``first``: by first use), each [P'] of the points some row uses."""
+
+    fit: _Fit
     points: np.ndarray
     point_class: np.ndarray
+    merged: np.ndarray
     index: np.ndarray
     orders: dict[str, np.ndarray]
 
@@ -328,6 +343,11 @@ class RowWeights:
         return shares
 
 
+def distinct_rows(rows: np.ndarray) -> int:
+    """How many distinct rows [R, D] there are (-0.0 and 0.0 one value, as in ``fit_palette``)."""
+    return len(np.unique(_row_keys(rows))) if rows.shape[1] else min(len(rows), 1)
+
+
 def _row_keys(rows: np.ndarray) -> np.ndarray:
     rows = np.ascontiguousarray(rows + np.float32(0.0))  # -0.0 becomes 0.0, as in ``fit_palette``
     return rows.view(np.dtype((np.void, rows.shape[1] * rows.itemsize)))[:, 0]
@@ -349,6 +369,33 @@ class ShPaletteCodec:
     name: str = field(default="vq-sh", init=False)
     kind: SectionKind = field(default="float32", init=False)
 
+    def _fit(self, values: np.ndarray) -> _Fit:
+        """The steps' search asks for one set of rows at every rung: its fit is kept (``_cached_fit``'s key)."""
+        key = (_digest(values), self.size, id(self.weights))
+        with _fits_lock:
+            if key in _row_fits and _row_fits[key][0] is self.weights:
+                _row_fits.move_to_end(key)
+                return _row_fits[key][1]
+        n, k, _ = values.shape
+        x = _finite(values, self.name).reshape(n, 3 * k)
+        index = np.zeros(n, dtype=np.int64)
+        entries = np.zeros((0, 3 * k), dtype=np.float32)
+        if self.size > 1:  # a palette of one entry maps every row to zero
+            nonzero = np.flatnonzero(x.any(axis=1))
+            entries, labels = _cached_fit(values.reshape(n, 3 * k)[nonzero], self.size - 1)
+            index[nonzero] = labels + 1
+        classes = np.zeros(len(entries), dtype=np.int64)
+        if self.weights is not None and len(entries):
+            classes = entry_classes(np.bincount(index, weights=self.weights.per_row(x), minlength=len(entries) + 1)[1:])
+        fit = _Fit(entries.reshape(len(entries), k, 3).astype(np.float64), classes, index)
+        for array in (fit.entries, fit.classes, fit.index):
+            array.setflags(write=False)
+        with _fits_lock:
+            _row_fits[key] = (self.weights, fit)
+            while len(_row_fits) > CACHED_FITS:
+                _row_fits.popitem(last=False)
+        return fit
+
     def _layout(self, values: np.ndarray) -> _Layout:
         if values.ndim != 3 or values.shape[1] not in SH_DEGREES or values.shape[2] != 3:
             raise ValueError(f"{self.name} encodes sh_rest [N, K, 3] with K in 0, 3, 8, 15, got {values.shape}")
@@ -358,17 +405,8 @@ class ShPaletteCodec:
         degree = SH_DEGREES[k]
         if len(self.steps) < degree:
             raise ValueError(f"{self.name}: {len(self.steps)} band steps for SH degree {degree}")
-        x = _finite(values, self.name).reshape(n, 3 * k)
-        index = np.zeros(n, dtype=np.int64)
-        entries = np.zeros((0, 3 * k), dtype=np.float32)
-        if self.size > 1:  # a palette of one entry maps every row to zero
-            nonzero = np.flatnonzero(x.any(axis=1))
-            entries, labels = _cached_fit(values.reshape(n, 3 * k)[nonzero], self.size - 1)
-            index[nonzero] = labels + 1
-        palette = entries.reshape(len(entries), k, 3).astype(np.float64)
-        classes = np.zeros(len(palette), dtype=np.int64)
-        if self.weights is not None and len(palette):
-            classes = entry_classes(np.bincount(index, weights=self.weights.per_row(x), minlength=len(palette) + 1)[1:])
+        fit = self._fit(values)
+        palette, classes = fit.entries, fit.classes
         # Symbols in units of each band's step; an entry of class c lies on multiples of 2^c of them.
         scale = (2.0 ** classes)[:, None, None]
         bands = [_grid(palette[:, s, :] / scale, 0.0, st, self.name) << classes[:, None, None]
@@ -386,7 +424,7 @@ class ShPaletteCodec:
         points, merged = q[first_of], merged.reshape(-1)
         point_class = np.full(len(points), MAX_CLASS, dtype=np.int64)
         np.minimum.at(point_class, merged, classes)
-        index = merged[index]
+        index = merged[fit.index]
         uses = np.bincount(index, minlength=len(points)).astype(np.float64)
         uses[merged[0]] = np.inf
         by_use = np.argsort(-uses, kind="stable")
@@ -395,7 +433,8 @@ class ShPaletteCodec:
         np.minimum.at(first, index, np.arange(len(index)))
         first[merged[0]] = -1
         by_first = np.argsort(first, kind="stable")[: len(by_use)]
-        return _Layout(points.reshape(len(points), k, 3), point_class, index, {"use": by_use, "first": by_first})
+        return _Layout(fit, points.reshape(len(points), k, 3), point_class, merged, index,
+                       {"use": by_use, "first": by_first})  # fmt: skip
 
     def _orders(self, layout: _Layout) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, bool]]:
         """Per entry order: its name, each row's rank [N], the entries in that order [E - 1, K, 3] shifted down to
@@ -440,7 +479,7 @@ class ShPaletteCodec:
         palette = np.zeros(layout.points.shape, dtype=np.float32)
         for band, step in zip(band_slices(degree), self.steps):
             palette[:, band, :] = layout.points[:, band, :].astype(np.float32) * np.float32(step)
-        return Estimate(bits, palette[layout.index])
+        return Estimate(bits, palette[layout.merged], index=layout.fit.index)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         # Archives written before the first-use order and the classes carry neither key: ordered by use, no classes.

@@ -41,10 +41,16 @@ class EncodedSection:
 @dataclass(frozen=True)
 class Estimate:
     """What ``encode`` then ``decode`` would give, without writing the bytes: the payload's bits, estimated from the
-    symbols' statistics (``entropy.table_bits``), and the decoded values [N, ...], exactly."""
+    symbols' statistics (``entropy.table_bits``), and the decoded values [N, ...], exactly: ``rows`` themselves, or
+    with ``index`` [N], value i decoding to ``rows[index[i]]`` (a palette: what its error needs is per entry)."""
 
     bits: float
-    decoded: np.ndarray
+    rows: np.ndarray
+    index: np.ndarray | None = None
+
+    @property
+    def decoded(self) -> np.ndarray:
+        return self.rows if self.index is None else self.rows[self.index]
 
 
 class SectionCodec(Protocol):

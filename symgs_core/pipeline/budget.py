@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from ..codec.order import coding_order, grid_cells
-from ..codec.palette import MAX_PALETTE, RowWeights, ShPaletteCodec
+from ..codec.palette import MAX_PALETTE, RowWeights, ShPaletteCodec, distinct_rows
 from ..codec.quantize import (
     OpacityCodec,
     PositionCodec,
@@ -40,7 +40,7 @@ from ..codec.section import RateCodec, SectionCodec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..scene import GaussianScene
-from .sensitivity import Sensitivity
+from .sensitivity import GroupedError, Sensitivity
 
 RUNGS = range(-6, 11)  # a ladder's steps: 2^(k/2) times the preset's, 1/8 .. 32
 # Below them, down to 2^-16 of the preset's step (about what float32 holds), only for a budget the finest of RUNGS
@@ -93,11 +93,17 @@ class Ladder:
         self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)),
                                                     None if classes is None else classes[sample])  # fmt: skip
         self._scale: tuple[float, float] | None = None  # (bits, error): the whole set's real figures over estimates
+        self._groups: tuple[np.ndarray, Sensitivity, GroupedError] | None = None  # (index, sens, what they give)
 
     def _measure(self, codec: RateCodec, values: np.ndarray, sens: Sensitivity,
                  classes: np.ndarray | None) -> tuple[float, float]:  # fmt: skip
         estimate = codec.estimate(values, classes=classes)
-        return estimate.bits, sens.error(self.section, values, estimate.decoded)
+        if estimate.index is None:
+            return estimate.bits, sens.error(self.section, values, estimate.decoded)
+        # A palette's rows keep their groups from rung to rung (its fit does not depend on the steps).
+        if self._groups is None or self._groups[0] is not estimate.index or self._groups[1] is not sens:
+            self._groups = (estimate.index, sens, sens.grouped(self.section, values, estimate.index))
+        return estimate.bits, self._groups[2].error(estimate.rows)
 
     @cached_property
     def _preset(self) -> tuple[RateCodec, tuple[float, float]]:
@@ -169,11 +175,11 @@ class Choice:
         return sum(self.errors.values())
 
 
-def palette_start(sh_rest: Tensor) -> int:
+def palette_start(sh_rest: np.ndarray) -> int:
     """The palette size tried for ``sh_rest`` [N, K, 3]: every distinct non-zero row (exact) when they number fewer
     than ``_EXACT_PALETTE``, as in scenes decoded from SOG; else ``_PALETTE``."""
-    rows = sh_rest.detach().reshape(len(sh_rest), -1)
-    distinct = len(torch.unique(rows[rows.any(dim=1)], dim=0))
+    rows = sh_rest.reshape(len(sh_rest), -1)
+    distinct = distinct_rows(rows[rows.any(axis=1)])
     return min(distinct + 1 if distinct < _EXACT_PALETTE else _PALETTE, MAX_PALETTE)
 
 
@@ -223,7 +229,7 @@ class RateDistortion:
         ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, classes=classes,
                           exhaustive=False, sample=sample)]  # fmt: skip
         if self.stored.sh_degree:
-            size = palette_start(self.stored.sh_rest)
+            size = palette_start(sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
             # A palette codes a vector per entry, not per Gaussian: its steps start finer by the square root of
             # entries per Gaussian, for the same error per coded component.
@@ -296,7 +302,8 @@ class RateDistortion:
         errors = {"codec": error * share, "sh_reduction": 0.0}
         degrees = self._sh_degrees(mu, codecs["sh_rest"], bits_of=lambda s: self._bits(s, mu))
         if degrees is not None:
-            errors["sh_reduction"] = float(self._dropped_sh_error(degrees)[keep].sum())
+            # The error of truncating to degree d is column d of the truncation costs.
+            errors["sh_reduction"] = float(self._cost_err.gather(1, degrees[:, None])[keep, 0].sum())
         return Choice(codecs, keep, degrees, errors, bits * share, mu, rungs)
 
     def prune_order(self) -> Tensor:
@@ -340,11 +347,6 @@ class RateDistortion:
         cost_err = torch.cat([tail, tail.new_zeros(len(energy), 1)], dim=1)
         nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
         return energy, cost_err, nonzero
-
-    def _dropped_sh_error(self, degrees: Tensor) -> Tensor:
-        energy = self._energy
-        band = torch.arange(1, energy.shape[1] + 1, device=energy.device)
-        return (energy * (band[None, :] > degrees[:, None])).sum(dim=1)
 
     def apply(self, choice: Choice, *, pruning: bool = True, sh_reduction: bool = True) -> tuple[Tensor, GaussianScene]:
         """The stored set (in the input's order) as the choice leaves it: removed Gaussians gone, dropped SH bands

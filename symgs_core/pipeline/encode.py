@@ -28,7 +28,7 @@ from ..codec.registry import ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..metrics import mse_to_psnr, psnr_to_mse
-from ..report import CodecReport, StageReport
+from ..report import CodecReport, Fidelity, StageReport
 from ..views import View, evaluate, viewer_cameras
 from .budget import Choice, RateDistortion, extent_of
 from .sensitivity import sensitivity
@@ -96,6 +96,7 @@ class Fitted:
     seconds: float = 0.0
     rd: RateDistortion | None = None  # the rate model the codec was chosen by (``rate_model``)
     allowed: float = 0.0  # the growth of the fitting MSE the floor left the codec
+    fitting: Fidelity | None = None  # the archive's decode on the fitting views, SSIM too (None: not rendered)
 
     def classes_of(self, kept: Tensor | None = None) -> Tensor | None:
         """Step classes of ``unreduced``'s Gaussians (those of ``kept`` [M] indices, or all), as the codec chose."""
@@ -209,7 +210,9 @@ def fit_codec(
     best: Fitted | None = None
     tries: list[dict]
     target, tries = _AIM * allowed - pruned, []
-    measured: dict[tuple, float] = {}  # each choice's fitting PSNR: the model may give a choice again for a new target
+    # Each choice's decode on the fitting views (the model may give a choice again for a new target), SSIM too: the
+    # report's fitting scores are then the kept archive's, not 16 more renders.
+    measured: dict[tuple, Fidelity] = {}
     for round_ in range(MAX_CHECKS):
         if should_stop is not None and should_stop():
             break
@@ -227,19 +230,20 @@ def fit_codec(
             codec = ArchiveCodec(name, {**choice.codecs, "bits": MASKS, "classes": CLASSES})
             archive = write_archive(candidate, meta, codec, rd.classes[kept])
             decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
-            measured[key] = evaluate(decoded, fit, background, with_ssim=False).worst
+            measured[key] = evaluate(decoded, fit, background)
             tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
-                          "psnr": measured[key], "bytes": len(archive)})  # fmt: skip
-            if measured[key] >= floor and (best is None or len(archive) < len(best.archive)):
+                          "psnr": measured[key].worst, "bytes": len(archive)})  # fmt: skip
+            if measured[key].worst >= floor and (best is None or len(archive) < len(best.archive)):
                 dropped = 0
                 if choice.degrees is not None:
                     dropped = int((stored.sh_degree - choice.degrees[choice.keep]).clamp_min(0).sum())
                 steps = rd.steps(choice)
-                best = Fitted(candidate, archive, measured[key], CodecReport(name, steps.report(), floor, 0), steps,
-                              codec, choice, state, kept, pruned=pruned, removed=len(state.stored) - len(stored),
-                              dropped_bands=dropped, rd=rd, allowed=allowed)  # fmt: skip
+                best = Fitted(candidate, archive, measured[key].worst, CodecReport(name, steps.report(), floor, 0),
+                              steps, codec, choice, state, kept, pruned=pruned,
+                              removed=len(state.stored) - len(stored), dropped_bands=dropped, rd=rd, allowed=allowed,
+                              fitting=measured[key])  # fmt: skip
                 improved = True
-        excess = psnr_to_mse(measured[key]) - psnr_to_mse(psnr_before)
+        excess = psnr_to_mse(measured[key].worst) - psnr_to_mse(psnr_before)
         if improved and excess >= _CLOSE * allowed:
             break
         # Rescale the codec's model by what the renders measured beyond the pruning, aiming again at ``_AIM``.
@@ -308,9 +312,9 @@ def fixed_codec(
     writer = steps.archive_codec(extent_of(state.stored), name)
     archive = write_archive(state, meta, writer)
     decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
-    psnr = evaluate(decoded, fit, background, with_ssim=False).worst
-    return Fitted(state, archive, psnr, CodecReport(name, steps.report(), None, 0), steps, writer,
-                  seconds=time.perf_counter() - t0)  # fmt: skip
+    fitting = evaluate(decoded, fit, background)
+    return Fitted(state, archive, fitting.worst, CodecReport(name, steps.report(), None, 0), steps, writer,
+                  seconds=time.perf_counter() - t0, fitting=fitting)  # fmt: skip
 
 
 def fitted_baseline(plain: LevelState, fitted: Fitted, meta: dict) -> bytes:

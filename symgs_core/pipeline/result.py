@@ -76,7 +76,9 @@ def evaluate(encoded: Encoded, job: Job) -> Evaluated:
     views = encoded.views
     decoded = expand_archive(decode_archive(encoded.fitted.archive)).to(encoded.source.device)
     fidelity = scored(decoded, views.eval, views.background)
-    fitting = scored(decoded, views.fit, views.background)
+    fitting = encoded.fitted.fitting  # rendered when the codec checked this archive
+    if fitting is None:
+        fitting = scored(decoded, views.fit, views.background)
     psnr_input = math.inf
     if job.photographs:
         psnr_input = scored(encoded.source, views.eval, views.background, with_ssim=False).worst

@@ -59,6 +59,21 @@ class Sensitivity:
         weighted *= diff
         return float(weighted.sum())
 
+    def grouped(self, section: str, original: np.ndarray, index: np.ndarray) -> GroupedError:
+        """``error`` for values that decode a group at a time (``Estimate.index`` [N]: each value's group), priced
+        per group: a palette's rungs then cost its entries, not its rows."""
+        if section in ("opacities", "quats"):
+            raise ValueError(f"{section} is not priced by group (its error is not of the stored values)")
+        n = len(original)
+        w = self.weights[section].reshape(n, -1)
+        x = torch.from_numpy(original.reshape(n, -1).astype(np.float64))
+        groups = torch.tensor(index, dtype=torch.int64)  # a copy: the index may be read-only (a kept fit)
+        count = int(groups.max()) + 1 if n else 0
+        weight = w.new_zeros(count, w.shape[1]).index_add_(0, groups, w)
+        mean = w.new_zeros(count, w.shape[1]).index_add_(0, groups, w * x) / weight.clamp_min(1e-300)
+        spread = float((w * (x - mean[groups]) ** 2).sum())
+        return GroupedError(weight.numpy(), mean.numpy(), spread)
+
     def per_gaussian(self, section: str) -> Tensor:
         """The weights of ``section`` summed over each Gaussian's components [N]."""
         w = self.weights[section]
@@ -85,6 +100,25 @@ class Sensitivity:
         if not exponents:
             return torch.zeros(len(next(iter(self.weights.values()))), dtype=torch.int64)
         return torch.stack(exponents).mean(dim=0).round().clamp(0, count - 1).to(torch.int64)
+
+
+@dataclass(frozen=True)
+class GroupedError:
+    """The error of values decoded by group: per group its weight [G, C] and the weighted mean [G, C] of its values,
+    and their error about those means (``spread``). Decoding group g to r_g errs by sum_g weight_g (r_g - mean_g)^2
+    plus the spread: about the weighted mean the cross term vanishes, so no large terms cancel."""
+
+    weight: np.ndarray
+    mean: np.ndarray
+    spread: float
+
+    def error(self, rows: np.ndarray) -> float:
+        """The error when group g decodes to ``rows[g]`` [G, ...]."""
+        d = rows.reshape(len(rows), -1).astype(np.float64)
+        d -= self.mean
+        weighted = self.weight * d
+        weighted *= d
+        return float(weighted.sum()) + self.spread
 
 
 def _alpha(logits: np.ndarray) -> np.ndarray:

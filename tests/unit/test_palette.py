@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive
+from symgs_core.codec import ArchiveContents, ArchiveError, decode_archive, encode_archive, palette
 from symgs_core.codec.entropy import encode_table
-from symgs_core.codec.palette import ShPaletteCodec, _nearest, _reassign, fit_palette
+from symgs_core.codec.palette import RowWeights, ShPaletteCodec, _nearest, _reassign, fit_palette
 from symgs_core.codec.quantize import ShRestCodec
 from symgs_core.codec.steps import QuantSteps
 from symgs_core.scene import GaussianScene
@@ -226,8 +226,6 @@ def test_entry_classes_follow_the_inverse_square_root_of_the_weight() -> None:
 
 
 def test_row_weights_are_found_in_any_order_and_shared_among_repeats() -> None:
-    from symgs_core.codec.palette import RowWeights
-
     rows = _sog_like(400, 100, seed=31)
     weights = np.random.default_rng(32).random(400)
     table = RowWeights.of(rows, weights)
@@ -281,3 +279,23 @@ def test_hostile_entry_classes_are_refused() -> None:
             codec.decode(payload, values.shape, coded.params, coded.raw_length)
     with pytest.raises(ArchiveError):
         codec.check(values.shape, {**coded.params, "classes": "yes"}, coded.raw_length)
+
+
+def test_a_ladder_of_steps_fits_its_palette_once_and_prices_each_rung_as_a_fresh_codec(monkeypatch) -> None:  # noqa: ANN001
+    values = _clustered(3000, 8, centres=400, noise=0.02, seed=5)
+    rng = np.random.default_rng(1)
+    weights = [RowWeights.of(values, 10.0 ** rng.uniform(-4, 0, len(values))) for _ in range(2)]
+    fit, fits = palette.fit_palette, []
+    monkeypatch.setattr(palette, "fit_palette", lambda rows, size: fits.append(size) or fit(rows, size))
+    rungs = [(w, step) for w in weights for step in (0.004, 0.01, 0.04)]
+    estimates = [ShPaletteCodec(301, (step,) * 3, w).estimate(values) for w, step in rungs]
+    assert fits == [300]  # one k-means for every rung, whichever weights price the entries' classes
+    for (w, step), estimate in zip(rungs, estimates):
+        palette._fits.clear()
+        palette._row_fits.clear()
+        codec = ShPaletteCodec(301, (step,) * 3, w)
+        fresh = codec.estimate(values.copy())
+        assert estimate.bits == fresh.bits and np.array_equal(estimate.decoded, fresh.decoded)
+        assert estimate.index is not None and len(estimate.rows) <= 301  # priced per entry
+        assert np.array_equal(estimate.decoded, _roundtrip(codec, values)[0])
+    assert not np.array_equal(estimates[0].decoded, estimates[3].decoded)  # the weights' classes differ

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -111,3 +112,24 @@ def test_step_classes_coarsen_by_a_step_per_quarter_of_the_weight() -> None:
     classes = Sensitivity(weights).step_classes(4)
     assert classes[:10].tolist() == [3, 3, 2, 1, 0, 0, 0, 0, 0, 0] and (classes[10:] == 0).all()
     assert (Sensitivity({"means": torch.zeros(5, 3, dtype=torch.float64)}).step_classes() == 0).all()
+
+
+def test_an_error_priced_by_group_is_the_error_of_every_value() -> None:
+    # Groups decoded to their rows: what a palette's rung costs, priced per entry, against the sum over its rows.
+    rng = np.random.default_rng(3)
+    n, groups = 500, 40
+    original = rng.normal(size=(n, 3, 3)).astype(np.float32)
+    index = rng.integers(0, groups, n)
+    index[index == 7] = 8  # a group no value uses
+    weights = torch.from_numpy(10.0 ** rng.uniform(-6, 0, (n, 3, 3)))
+    weights[index == 3] = 0.0  # a group the renders do not see
+    sens = Sensitivity({"sh_rest": weights})
+    grouped = sens.grouped("sh_rest", original, index)
+    for scale in (1e-6, 1e-2, 1.0):
+        rows = (rng.normal(size=(groups, 3, 3)) * scale).astype(np.float32)
+        assert grouped.error(rows) == pytest.approx(sens.error("sh_rest", original, rows[index]), rel=1e-9)
+    # Rows at the groups' own values (one value each) err by rounding alone.
+    exact = sens.grouped("sh_rest", original, np.arange(n)).error(original)
+    assert 0.0 <= exact <= 1e-15 * sens.error("sh_rest", original, np.zeros_like(original))
+    with pytest.raises(ValueError, match="opacities"):
+        Sensitivity({"opacities": weights[:, 0, 0]}).grouped("opacities", original[:, 0, 0], index)
