@@ -67,7 +67,7 @@ class Sensitivity:
         n = len(original)
         w = self.weights[section].reshape(n, -1)
         x = torch.from_numpy(original.reshape(n, -1).astype(np.float64))
-        groups = torch.tensor(index, dtype=torch.int64)  # a copy: the index may be read-only (a kept fit)
+        groups = torch.from_numpy(index.astype(np.int64))  # a copy: the index may be read-only (a kept fit)
         count = int(groups.max()) + 1 if n else 0
         weight = w.new_zeros(count, w.shape[1]).index_add_(0, groups, w)
         mean = w.new_zeros(count, w.shape[1]).index_add_(0, groups, w * x) / weight.clamp_min(1e-300)
