@@ -213,12 +213,13 @@ def fit_codec(
     # Each choice's decode on the fitting views (the model may give a choice again for a new target), SSIM too: the
     # report's fitting scores are then the kept archive's, not 16 more renders.
     measured: dict[tuple, Fidelity] = {}
+    held, missed = 0.0, math.inf  # the largest target whose archive held the floor, the smallest whose did not
     for round_ in range(MAX_CHECKS):
         if should_stop is not None and should_stop():
             break
         choice = rd.choose(target, keep=keep)
         if choice.error > target and bool(rd.classes.any()):  # the classes' coarser steps are the floor
-            rd, measured = rd.one_class(), {}
+            rd, measured, held, missed = rd.one_class(), {}, 0.0, math.inf
             choice = rd.choose(target, keep=keep)
         if choice.error > target:
             break  # nothing quantised fits: float32 below
@@ -244,11 +245,22 @@ def fit_codec(
                               fitting=measured[key])  # fmt: skip
                 improved = True
         excess = psnr_to_mse(measured[key].worst) - psnr_to_mse(psnr_before)
+        if measured[key].worst >= floor:
+            held = max(held, target)
+        else:
+            missed = min(missed, target)
         if improved and excess >= _CLOSE * allowed:
             break
         # Rescale the codec's model by what the renders measured beyond the pruning, aiming again at ``_AIM``.
         ratio = max(excess - pruned, 1e-30) / max(choice.error, 1e-30)
         aim = min(max((_AIM * allowed - pruned) / ratio, target / 8.0), target * 8.0)
+        # Only a target between the two can improve: at or below one that held the floor the steps are finer and the
+        # archive larger; at or above one that missed it, it misses again (the ratio drifts where the renders are
+        # not linear in the steps: playbot at 2M aimed below its kept archive's target after a miss, one try wasted).
+        if aim <= held:
+            break
+        if aim >= missed:
+            aim = math.sqrt(missed * max(held, missed / 8.0))
         if abs(aim / target - 1.0) < 0.03:
             break
         target = aim

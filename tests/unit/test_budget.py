@@ -17,6 +17,7 @@ from symgs_core.pipeline.budget import LOWEST, RUNGS, RateDistortion
 from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
 from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
 from symgs_core.pipeline.state import LevelState
+from symgs_core.report import Fidelity
 from symgs_core.synthetic import synthetic_scene
 from symgs_core.views import evaluate, self_supervised_views
 
@@ -243,3 +244,38 @@ def test_step_classes_do_not_floor_a_budget_on_a_scene_already_on_grids() -> Non
     assert fitted.codec.name == "high" and fitted.psnr >= floor, fitted.tries
     assert not fitted.classes_of().any()
     assert len(fitted.archive) < 0.8 * len(write_archive(state, {}))
+
+
+def test_the_checks_aim_only_between_a_target_that_held_the_floor_and_one_that_missed(setting, monkeypatch) -> None:  # noqa: ANN001
+    """Renders that err more than the model, and more so the coarser the steps (error growing as the square of the
+    predicted one): rescaled by the last check alone, the search would aim back at a target that already missed the
+    floor. Kept between the largest target that held it and the smallest that missed it, every check is one that can
+    improve, and the kept archive is the smallest that held."""
+    state, views, _ = setting
+    allowed = psnr_to_mse(FLOOR)
+    choose, last, targets, checked = RateDistortion.choose, [], [], []
+
+    def recorded(self, target, keep=None):  # noqa: ANN001, ANN202
+        choice = choose(self, target, keep=keep)
+        targets.append(target)
+        last.append(choice.error)
+        return choice
+
+    def rendered(scene, views, background, with_ssim=True):  # noqa: ANN001, ANN202
+        checked.append(targets[-1])
+        error = last[-1]
+        psnr = mse_to_psnr(error * (1.0 + max(0.0, 4.0 * (error / allowed - 0.5))))
+        return Fidelity(psnr, psnr, 1.0)
+
+    monkeypatch.setattr(encode, "prune", lambda state, rd, *a, **k: (torch.ones(len(rd.stored), dtype=torch.bool), 0.0))
+    monkeypatch.setattr(RateDistortion, "choose", recorded)
+    monkeypatch.setattr(encode, "evaluate", rendered)
+    fitted = fit_codec(state, views.fit, views.background, floor=FLOOR, psnr_before=math.inf, start=QuantSteps(),
+                       meta={}, name="balanced")  # fmt: skip
+    held = [t for t, r in zip(checked, fitted.tries) if r["psnr"] >= FLOOR]
+    assert len(fitted.tries) >= 3 and held  # a miss, a hold, then one between them
+    for i, (target, tried) in enumerate(zip(checked, fitted.tries)):
+        for later in checked[i + 1 :]:
+            assert later > target if tried["psnr"] >= FLOOR else later < target
+    assert len(fitted.archive) == min(r["bytes"] for r in fitted.tries if r["psnr"] >= FLOOR)
+    assert psnr_to_mse(fitted.psnr) >= 0.8 * allowed  # the bracket reached the budget the first hold left unspent
