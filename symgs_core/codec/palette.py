@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -52,7 +53,9 @@ CACHED_FITS = 4
 SH_DEGREES = {0: 0, 3: 1, 8: 2, 15: 3}  # rows of sh_rest -> SH degree
 
 _fits: OrderedDict[tuple[bytes, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-_row_fits: OrderedDict[tuple[bytes, int, int], tuple[RowWeights | None, _Fit]] = OrderedDict()  # ShPaletteCodec._fit
+# ShPaletteCodec._fit, by the rows' digest, the size and the weights' identity; the weights are held weakly, so that a
+# worker's cache does not keep a finished job's (a million rows' keys) alive.
+_row_fits: OrderedDict[tuple[bytes, int, int], tuple[weakref.ref | None, _Fit]] = OrderedDict()
 _fits_lock = threading.Lock()
 
 
@@ -373,9 +376,10 @@ class ShPaletteCodec:
         """The steps' search asks for one set of rows at every rung: its fit is kept (``_cached_fit``'s key)."""
         key = (_digest(values), self.size, id(self.weights))
         with _fits_lock:
-            if key in _row_fits and _row_fits[key][0] is self.weights:
+            held = _row_fits.get(key)
+            if held is not None and (held[0]() if held[0] is not None else None) is self.weights:
                 _row_fits.move_to_end(key)
-                return _row_fits[key][1]
+                return held[1]
         n, k, _ = values.shape
         x = _finite(values, self.name).reshape(n, 3 * k)
         index = np.zeros(n, dtype=np.int64)
@@ -391,7 +395,7 @@ class ShPaletteCodec:
         for array in (fit.entries, fit.classes, fit.index):
             array.setflags(write=False)
         with _fits_lock:
-            _row_fits[key] = (self.weights, fit)
+            _row_fits[key] = (None if self.weights is None else weakref.ref(self.weights), fit)
             while len(_row_fits) > CACHED_FITS:
                 _row_fits.popitem(last=False)
         return fit

@@ -3,6 +3,9 @@ written with it, hostile payloads and deterministic output."""
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import numpy as np
 import pytest
 import torch
@@ -299,3 +302,15 @@ def test_a_ladder_of_steps_fits_its_palette_once_and_prices_each_rung_as_a_fresh
         assert estimate.index is not None and len(estimate.rows) <= 301  # priced per entry
         assert np.array_equal(estimate.decoded, _roundtrip(codec, values)[0])
     assert not np.array_equal(estimates[0].decoded, estimates[3].decoded)  # the weights' classes differ
+
+
+def test_a_kept_fit_does_not_keep_a_finished_job_s_weights_alive() -> None:
+    # A worker's fit cache outlives its jobs; a job's row weights (a million rows' keys) must not.
+    values = _clustered(500, 3, centres=100, noise=0.02, seed=6)
+    weights = RowWeights.of(values, np.ones(len(values)))
+    first = ShPaletteCodec(51, STEPS, weights).estimate(values)
+    assert ShPaletteCodec(51, STEPS, weights).estimate(values).bits == first.bits  # from the kept fit
+    gone = weakref.ref(weights)
+    del weights
+    gc.collect()
+    assert gone() is None
