@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from .. import heap
 from ..codec import decode_archive, expand_archive
 from ..config import CompressConfig
 from ..devices import resolve_device
@@ -42,13 +43,14 @@ def compress(
               Path(images) if images is not None else None,
               Path(checkpoint_dir) if checkpoint_dir is not None else None, charts)  # fmt: skip
     torch.manual_seed(config.seed)
-    loaded = prepare.load(scene, job)
-    viewed = prepare.views(loaded, job)
-    fitted = codec_fit.fit(viewed, job)
-    levelled = levels.levels(fitted, job)
-    encoded = result.encode(levelled, job)
-    evaluated = result.evaluate(encoded, job)
-    return result.report(evaluated, job)
+    with heap.kept():  # a large scene's arrays, freed and allocated again render after render
+        loaded = prepare.load(scene, job)
+        viewed = prepare.views(loaded, job)
+        fitted = codec_fit.fit(viewed, job)
+        levelled = levels.levels(fitted, job)
+        encoded = result.encode(levelled, job)
+        evaluated = result.evaluate(encoded, job)
+        return result.report(evaluated, job)
 
 
 def decompress(archive: bytes | bytearray | memoryview | str | Path) -> GaussianScene:

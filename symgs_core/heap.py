@@ -1,0 +1,65 @@
+"""The C heap while a job runs: freed blocks kept for reuse instead of handed back to the system at once.
+
+A job at a million Gaussians allocates and frees arrays of tens to hundreds of MB for every render and every rate
+estimate (projected Gaussians, per-intersection gradients, float64 copies of a million SH rows). glibc maps each block
+above its mmap threshold (32 MiB at most) afresh and unmaps it when freed, so the kernel zeroes every page again on
+first touch: at 1M Gaussians, system time was a fifth of the job's CPU time (BENCHMARKS "Scale"). While a job runs
+(``kept``), blocks come from the heap and freed ones stay there (``mallopt``: no mmap, no trimming); when the last
+job of the process ends, the heap's free pages go back to the system (``malloc_trim``), so an idle worker holds no
+more than it did before. The same values are computed either way; with another C library nothing changes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import platform
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+# mallopt parameters and glibc's defaults (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_DEFAULT_TRIM_THRESHOLD, _DEFAULT_MMAP_MAX = 128 * 1024, 65536
+_KEEP_UP_TO = (1 << 31) - 1  # bytes of free heap top kept (mallopt takes an int)
+
+_lock = threading.Lock()
+_jobs = 0  # jobs of this process inside ``kept``: the heap returns to the defaults when the last one leaves
+
+
+@functools.cache
+def _glibc() -> ctypes.CDLL | None:
+    """The process's own C library where it is glibc (the calls below are glibc's)."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt.argtypes, libc.malloc_trim.argtypes = [ctypes.c_int, ctypes.c_int], [ctypes.c_size_t]
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+@contextmanager
+def kept() -> Iterator[None]:
+    """Freed memory stays in the heap inside the block (every thread of the process); on leaving the last one, the
+    allocator's defaults are back and the free pages are returned to the system."""
+    global _jobs
+    libc = _glibc()
+    if libc is None:
+        yield
+        return
+    with _lock:
+        if _jobs == 0:
+            libc.mallopt(_M_MMAP_MAX, 0)
+            libc.mallopt(_M_TRIM_THRESHOLD, _KEEP_UP_TO)
+        _jobs += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _jobs -= 1
+            if _jobs == 0:
+                libc.mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
+                libc.mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_THRESHOLD)
+                libc.malloc_trim(0)
