@@ -3,10 +3,11 @@
 A job at a million Gaussians allocates and frees arrays of tens to hundreds of MB for every render and every rate
 estimate (projected Gaussians, per-intersection gradients, float64 copies of a million SH rows). glibc maps each block
 above its mmap threshold (32 MiB at most) afresh and unmaps it when freed, so the kernel zeroes every page again on
-first touch: at 1M Gaussians, system time was a fifth of the job's CPU time (BENCHMARKS "Scale"). While a job runs
-(``kept``), blocks come from the heap and freed ones stay there (``mallopt``: no mmap, no trimming); when the last
-job of the process ends, the heap's free pages go back to the system (``malloc_trim``), so an idle worker holds no
-more than it did before. The same values are computed either way; with another C library nothing changes.
+first touch: at 1M Gaussians, 39 s of system time in 270 s of CPU. While a job runs (``kept``), blocks come from the
+heap and freed ones stay there (``mallopt``: no mmap, no trimming): 9 s of system time, the job 0.83x the wall time,
+for a peak 15% higher (2.87 -> 3.30 GiB; BENCHMARKS "Scale"). When the last job of the process ends, the heap's free
+pages go back to the system (``malloc_trim``), so an idle worker holds no more than it did before. The same values
+are computed either way; with another C library nothing changes.
 """
 
 from __future__ import annotations
