@@ -44,7 +44,9 @@ def _glibc() -> ctypes.CDLL | None:
 @contextmanager
 def kept() -> Iterator[None]:
     """Freed memory stays in the heap inside the block (every thread of the process); on leaving the last one, the
-    allocator's defaults are back and the free pages are returned to the system."""
+    default limits are back and the free pages are returned to the system. One setting is not glibc's default after:
+    once a limit has been set, glibc no longer raises its mmap threshold as large blocks are freed (it stays where it
+    had reached), so blocks of up to 32 MiB may still be mapped on their own."""
     global _jobs
     libc = _glibc()
     if libc is None:

@@ -1,4 +1,4 @@
-"""The heap during a job: freed arrays reused without new page faults, and handed back to the system after it."""
+"""The heap during a job: a freed array stays in the heap for the next one, and goes back to the system after it."""
 
 from __future__ import annotations
 
