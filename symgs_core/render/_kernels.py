@@ -6,6 +6,7 @@ Inputs are projected Gaussians (float64, C-contiguous), N of them:
   feats    [N, D]  per-Gaussian channels to composite (the CPU backend sends RGB and depth)
   opacity  [N]     activated opacity
   rects    [N, 4]  int32 (x0, x1, y0, y1): the pixels whose centre lies inside the 3-sigma box, clipped to the image
+The compositing kernels read them packed, one record per Gaussian (``pack``).
 
 A pixel takes a Gaussian only inside its rect, so binning by rect makes the image independent of the tile size.
 Each tile first copies its Gaussians into contiguous local arrays and splits itself into 4x4-pixel blocks with their
@@ -32,6 +33,7 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 # Per-intersection gradient row: d/du, d/dv, d/da, d/db, d/dc, d/dopacity, then d/dfeats.
 GEOM_GRADS = 6
+GEOMETRY = 7  # a record's leading values (``pack``): u, v, a, b, c, opacity, exponent cut
 # Side of the pixel blocks a tile is split into.
 BLOCK = 4
 RADIX_BITS = 11  # bits of a depth key sorted per pass when binning (a 2048-bucket histogram per thread)
@@ -204,23 +206,44 @@ def balance_tiles(work, threads):
     return order
 
 
+@_compile(parallel=True)
+def pack(means2d, conics, feats, opacity, rects):
+    """One record [N, GEOMETRY + D + 4] per Gaussian: u, v, a, b, c, opacity, exponent cut, feats, then its rect
+    (x0, x1, y0, y1, exact as floats). A tile reads each of its Gaussians from one place: at 1M Gaussians, gathering
+    them from five arrays took half the compositing's time."""
+    n = means2d.shape[0]
+    d = feats.shape[1]
+    rec = np.empty((n, GEOMETRY + d + 4))
+    for g in prange(n):
+        rec[g, 0] = means2d[g, 0]
+        rec[g, 1] = means2d[g, 1]
+        rec[g, 2] = conics[g, 0]
+        rec[g, 3] = conics[g, 1]
+        rec[g, 4] = conics[g, 2]
+        rec[g, 5] = opacity[g]
+        rec[g, 6] = math.log(ALPHA_MIN / opacity[g]) - CUT_MARGIN if opacity[g] > 0.0 else 1.0
+        for c in range(d):
+            rec[g, GEOMETRY + c] = feats[g, c]
+        for c in range(4):
+            rec[g, GEOMETRY + d + c] = rects[g, c]
+    return rec
+
+
 @_compile(parallel=False)
-def _gather(ids, start, n, means2d, conics, opacity, feats, rects):
+def _gather(ids, start, n, rec):
     """A tile's Gaussians as contiguous arrays: geometry [n, 7] (u, v, a, b, c, opacity, exponent cut), rects, feats."""
-    geo = np.empty((n, 7))
+    d = rec.shape[1] - GEOMETRY - 4
+    geo = np.empty((n, GEOMETRY))
     box = np.empty((n, 4), dtype=np.int32)
-    col = np.empty((n, feats.shape[1]))
+    col = np.empty((n, d))
     for j in range(n):
         g = ids[start + j]
-        geo[j, 0] = means2d[g, 0]
-        geo[j, 1] = means2d[g, 1]
-        geo[j, 2] = conics[g, 0]
-        geo[j, 3] = conics[g, 1]
-        geo[j, 4] = conics[g, 2]
-        geo[j, 5] = opacity[g]
-        geo[j, 6] = math.log(ALPHA_MIN / opacity[g]) - CUT_MARGIN if opacity[g] > 0.0 else 1.0
-        box[j, :] = rects[g, :]
-        col[j, :] = feats[g, :]
+        for c in range(GEOMETRY):
+            geo[j, c] = rec[g, c]
+        for c in range(d):
+            col[j, c] = rec[g, GEOMETRY + c]
+        for c in range(4):
+            box[j, c] = np.int32(rec[g, GEOMETRY + d + c])
     return geo, box, col
 
 
@@ -261,11 +284,9 @@ def _splat(geo, j):
 
 
 @_compile(parallel=True)
-def composite_forward(
-    means2d, conics, feats, opacity, rects, offsets, ids, order, background, width, height, tile_size
-):
-    """Composited channels [H, W, D] (background included) and final transmittance [H, W]."""
-    d = feats.shape[1]
+def composite_forward(rec, offsets, ids, order, background, width, height, tile_size):
+    """Composited channels [H, W, D] (background included) and final transmittance [H, W] of ``pack``'s records."""
+    d = rec.shape[1] - GEOMETRY - 4
     tiles_x = (width + tile_size - 1) // tile_size
     out = np.empty((height, width, d))
     t_final = np.empty((height, width))
@@ -276,7 +297,7 @@ def composite_forward(
         y_end = min(y0 + tile_size, height)
         x_end = min(x0 + tile_size, width)
         start = offsets[tile]
-        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
+        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, rec)
         nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
         acc = np.empty((BLOCK, BLOCK, d))
         t = np.empty((BLOCK, BLOCK))
@@ -324,16 +345,13 @@ def composite_forward(
 
 
 @_compile(parallel=True)
-def composite_backward(
-    means2d, conics, feats, opacity, rects, offsets, ids, order, width, height, tile_size, out, t_final, grad_out,
-    grad_t_final,
-):
+def composite_backward(rec, offsets, ids, order, width, height, tile_size, out, t_final, grad_out, grad_t_final):
     """Gradient rows [I, 6 + D] per tile-Gaussian pair, in the order of ``ids``.
 
     Walks each block front to back again with the forward's exact decisions. With S = sum_c g_c out_c + g_T T_final
     and R_k the same sum over what Gaussians 0..k composited, dL/dalpha_k = T_k (g . f_k) - (S - R_k) / (1 - alpha_k).
     """
-    d = feats.shape[1]
+    d = rec.shape[1] - GEOMETRY - 4
     tiles_x = (width + tile_size - 1) // tile_size
     grads = np.zeros((ids.shape[0], GEOM_GRADS + d))
     for k in prange(order.shape[0]):
@@ -343,7 +361,7 @@ def composite_backward(
         y_end = min(y0 + tile_size, height)
         x_end = min(x0 + tile_size, width)
         start = offsets[tile]
-        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, means2d, conics, opacity, feats, rects)
+        geo, box, col = _gather(ids, start, offsets[tile + 1] - start, rec)
         nbx, counts, lists = _blocks(box, x0, y0, x_end, y_end)
         g_pix = np.empty((BLOCK, BLOCK, d))
         total = np.empty((BLOCK, BLOCK))
@@ -411,12 +429,18 @@ def composite_backward(
     return grads
 
 
-@_compile(parallel=False)
-def sum_by_gaussian(rows, ids, n):
-    """Per-Gaussian sums [n, C] of per-intersection rows [I, C], added in the order of ``ids``."""
+@_compile(parallel=True)
+def sum_by_gaussian(rows, ids, n, threads):
+    """Per-Gaussian sums [n, C] of per-intersection rows [I, C], added in the order of ``ids``: each of ``threads``
+    threads walks every row and adds those of its own range of Gaussians, so the order, and the bits, do not depend on
+    the count."""
     total = np.zeros((n, rows.shape[1]))
-    for e in range(ids.shape[0]):
-        g = ids[e]
-        for c in range(rows.shape[1]):
-            total[g, c] += rows[e, c]
+    for q in prange(threads):
+        lo = n * q // threads
+        hi = n * (q + 1) // threads
+        for e in range(ids.shape[0]):
+            g = ids[e]
+            if lo <= g < hi:
+                for c in range(rows.shape[1]):
+                    total[g, c] += rows[e, c]
     return total

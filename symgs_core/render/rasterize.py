@@ -67,12 +67,12 @@ class _Composite(torch.autograd.Function):
         background: Tensor,
         binning: Binning,
     ):
-        arrays = (_np64(means2d), _np64(conics), _np64(feats), _np64(opacity))
         b = binning
+        rec = _kernels.pack(_np64(means2d), _np64(conics), _np64(feats), _np64(opacity), b.rects)
         out, t_final = _kernels.composite_forward(
-            *arrays, b.rects, b.offsets, b.ids, b.order, _np64(background), b.width, b.height, b.tile_size
+            rec, b.offsets, b.ids, b.order, _np64(background), b.width, b.height, b.tile_size
         )
-        ctx.arrays = arrays
+        ctx.rec = rec
         ctx.binning = binning
         ctx.out = out
         ctx.t_final = t_final
@@ -84,13 +84,12 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image: Tensor, grad_alpha: Tensor):
         b: Binning = ctx.binning
-        means2d, conics, feats, opacity = ctx.arrays
         g_out = _np64(grad_image)
         rows = _kernels.composite_backward(
-            means2d, conics, feats, opacity, b.rects, b.offsets, b.ids, b.order, b.width, b.height,
-            b.tile_size, ctx.out, ctx.t_final, g_out, -_np64(grad_alpha),
+            ctx.rec, b.offsets, b.ids, b.order, b.width, b.height, b.tile_size, ctx.out, ctx.t_final, g_out,
+            -_np64(grad_alpha),
         )
-        total = _kernels.sum_by_gaussian(rows, b.ids, means2d.shape[0])
+        total = _kernels.sum_by_gaussian(rows, b.ids, ctx.rec.shape[0], numba.get_num_threads())
         dtype, device = grad_image.dtype, grad_image.device
         total_t = torch.from_numpy(total).to(device=device, dtype=dtype)
         g_bg = torch.from_numpy(np.einsum("hwc,hw->c", g_out, ctx.t_final)).to(device=device, dtype=dtype)
