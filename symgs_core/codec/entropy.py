@@ -79,7 +79,7 @@ def _column(column: np.ndarray, level: int, raw_zstd: bool = True) -> bytes:
         head = bytes([transform]) + varint(_zigzag(offset))
         width = _width(top)
         if raw_zstd or transform != RAW:
-            frame = zstd_compress(symbols.astype(_WIDTHS[width]).tobytes(), level)
+            frame = zstd_compress(symbols.astype(_WIDTHS[width]), level)
             out.append(bytes([ZSTD]) + head + bytes([width]) + varint(len(frame)) + frame)
         if 0 < top < MAX_ALPHABET:  # constriction needs two symbols or more
             counts = np.bincount(symbols, minlength=top + 1)
@@ -94,7 +94,7 @@ def _rows(table: np.ndarray, level: int) -> bytes:
     offsets = table.min(axis=0) if len(table) else np.zeros(table.shape[1], dtype=np.int64)
     symbols = table - offsets
     width = _width(int(symbols.max()) if symbols.size else 0)
-    frame = zstd_compress(np.ascontiguousarray(symbols.astype(_WIDTHS[width])).tobytes(), level)
+    frame = zstd_compress(np.ascontiguousarray(symbols.astype(_WIDTHS[width])), level)
     return (
         bytes([ROWS])
         + write_varints(np.array([_zigzag(int(o)) for o in offsets], dtype=np.int64))
@@ -137,7 +137,7 @@ def _column_bits(column: np.ndarray, level: int, raw_zstd: bool = True) -> float
         symbols = values - (int(values.min()) if n else 0)
         top = int(symbols.max()) if n else 0
         if raw_zstd or transform != RAW:
-            frame = zstd_compress(symbols.astype(_WIDTHS[_width(top)]).tobytes(), level)
+            frame = zstd_compress(symbols.astype(_WIDTHS[_width(top)]), level)
             best = min(best, 8.0 * (len(frame) + _HEAD))
         if 0 < top < MAX_ALPHABET:
             counts = np.bincount(symbols, minlength=top + 1)

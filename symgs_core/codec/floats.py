@@ -90,7 +90,7 @@ class FloatZstd:
             flat = flat.astype(np.float16)
 
         def packed(layout: str) -> bytes:
-            return zstd_compress(np.ascontiguousarray(_arrange(flat, layout)).tobytes(), self.level)
+            return zstd_compress(np.ascontiguousarray(_arrange(flat, layout)), self.level)
 
         payloads = list(coding_pool().map(packed, LAYOUTS) if flat.size >= PARALLEL_VALUES else map(packed, LAYOUTS))
         smallest = min(range(len(LAYOUTS)), key=lambda i: len(payloads[i]))  # the first of equals, as in LAYOUTS
