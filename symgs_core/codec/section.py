@@ -13,19 +13,15 @@ from __future__ import annotations
 
 import functools
 import os
-import threading
-from collections.abc import Callable, Iterator
-from concurrent.futures import Executor, Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, TypeVar
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import zstandard
 
 from .errors import ArchiveError
 
-_T = TypeVar("_T")
 SectionKind = Literal["float32", "bool", "uint8"]
 # Every attribute value an archive holds, and every plane offset, lies within +-MAX_MAGNITUDE: then float32 sums and
 # products of a few of them stay finite (reflections through every level, grid origins plus steps), so a decoded
@@ -92,55 +88,24 @@ class RateCodec(SectionCodec, Protocol):
         ...
 
 
-def coding_pool() -> Executor:
-    """One thread per core for coding streams side by side: zstd and numpy release the GIL, and each stream's bytes
-    are the same whichever thread wrote it. Inside ``coding_alone`` the calling thread codes them itself."""
-    return _IN_THREAD if getattr(_alone, "on", False) else _shared_pool()
-
-
 @functools.cache
-def _shared_pool() -> ThreadPoolExecutor:
+def coding_pool() -> ThreadPoolExecutor:
+    """One thread per core for coding streams side by side: zstd and numpy release the GIL, and each stream's bytes
+    are the same whichever thread wrote it."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     return ThreadPoolExecutor(max_workers=cores, thread_name_prefix="coding")
 
 
 # A forked child (a Celery pool process) inherits the pool without its threads, and would wait on it forever.
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_shared_pool.cache_clear)
-
-
-class _InThread(Executor):
-    """Runs each task as it is submitted, on the submitting thread."""
-
-    def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:
-        future: Future[_T] = Future()
-        try:
-            future.set_result(fn(*args, **kwargs))
-        except BaseException as exc:  # noqa: BLE001  # the future carries it to whoever reads the result
-            future.set_exception(exc)
-        return future
-
-
-_IN_THREAD = _InThread()
-_alone = threading.local()
-
-
-@contextmanager
-def coding_alone() -> Iterator[None]:
-    """The calling thread codes its streams one after another, itself: work set aside at idle priority
-    (``pipeline.aside``) would otherwise queue in the shared pool ahead of the job's own, at the job's priority."""
-    before = getattr(_alone, "on", False)
-    _alone.on = True
-    try:
-        yield
-    finally:
-        _alone.on = before
+    os.register_at_fork(after_in_child=coding_pool.cache_clear)
 
 
 def zstd_compress(raw: bytes | np.ndarray, level: int) -> bytes:
     """One zstd frame that records its content size (readers rely on it to bound the output). ``raw``: bytes, or a
     C-contiguous array, read in place (its native bytes), not copied."""
-    return zstandard.ZstdCompressor(level=level, write_content_size=True).compress(raw if isinstance(raw, bytes) else raw.data)
+    compressor = zstandard.ZstdCompressor(level=level, write_content_size=True)
+    return compressor.compress(raw if isinstance(raw, bytes) else raw.data)
 
 
 def zstd_decompress_exact(payload: bytes, raw_length: int, what: str) -> bytes:

@@ -10,13 +10,10 @@ from ..cameras import COORDINATE_CONVENTION
 from ..codec.steps import QuantSteps
 from ..progress import StopFn
 from ..views import ViewSet
-from .encode import FitProgress, Fitted, check_views, fit_codec, fitted_baseline, fixed_codec, float32_size, pruned_size
+from .encode import FitProgress, Fitted, check_views, fit_codec, fixed_codec
 from .job import Job, grown
 from .prepare import Viewed
 from .state import LevelState
-
-# What the report reads of the input and of its plain archive, set aside (``aside``) as soon as each exists.
-INPUT_FLOAT32, PLAIN_BASELINE, PLAIN_PRUNED = "input float32 archive", "plain baseline", "plain pruned archive"
 
 
 @dataclass(frozen=True)
@@ -62,10 +59,7 @@ def fit(viewed: Viewed, job: Job) -> CodecFitted:
         viewed.views, viewed.floor, QuantSteps().scaled(spec.step_scale) if job.config.quantized else None,
         spec.fitted, meta, job.config.preset, job.reporter.should_stop,
     )
-    job.aside.start(INPUT_FLOAT32, float32_size, LevelState.plain(source), meta)
     plain = codec(LevelState.plain(source), viewed.reference,
                   progress=lambda within, message: job.reporter("codec", within, message))  # fmt: skip
-    job.aside.start(PLAIN_BASELINE, fitted_baseline, LevelState.plain(source), plain, meta)
-    job.aside.start(PLAIN_PRUNED, pruned_size, plain, meta)
     job.reporter.timed("codec", time.perf_counter() - t0)
     return grown(viewed, CodecFitted, codec=codec, plain=plain)

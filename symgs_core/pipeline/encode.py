@@ -338,31 +338,16 @@ def fitted_baseline(plain: LevelState, fitted: Fitted, meta: dict) -> bytes:
     return write_archive(canonical(plain), meta, fitted.writer, fitted.classes_of() if same else None)
 
 
-def float32_size(state: LevelState, meta: dict) -> int:
-    """Bytes of ``state``'s float32 archive (the lossless codec): where the stages' sizes start."""
-    return len(write_archive(state, meta))
-
-
-def pruned_size(fitted: Fitted, meta: dict) -> int | None:
-    """Bytes of ``fitted``'s state as pruning left it, before SH reduction, written by its codec: the pruning stage's
-    archive. None where pruning removed nothing or no rate model chose (then it is the archive before)."""
-    unreduced, kept = fitted.unreduced, fitted.kept
-    if not fitted.removed or fitted.choice is None or unreduced is None or kept is None or fitted.writer is None:
-        return None
-    pruned = LevelState(unreduced.stored.select(kept), unreduced.normals, unreduced.offsets,
-                        unreduced.bits[kept.to(unreduced.bits.device)])  # fmt: skip
-    return len(write_archive(pruned, meta, fitted.writer, fitted.classes_of(kept)))
-
-
 def stages(
-    mirrored: LevelState, fitted: Fitted, *, reference: float, mirrored_psnr: float, meta: dict,
-    seconds: dict[str, float], baseline: bytes, lossless_in: int, pruned: int | None,
+    source: LevelState, mirrored: LevelState, fitted: Fitted, *, reference: float, mirrored_psnr: float, meta: dict,
+    seconds: dict[str, float], baseline: bytes,
 ) -> list[StageReport]:
-    """Where the size went, each stage measured on archives: the mirrors on float32 archives (``lossless_in``: the
-    input's, ``float32_size``), then quantisation, pruning (``pruned``: ``pruned_size``) and SH reduction with the
-    final codec. The codec chose all three at one price; the PSNR after the middle two is the model's prediction
-    (``predicted``), the first and last are rendered. ``baseline``: the plain state written by the final codec
-    (``fitted_baseline``), which is the quantisation stage's archive when no mirror was kept."""
+    """Where the size went, each stage measured on archives: the mirrors on float32 archives, then quantisation,
+    pruning and SH reduction with the final codec. The codec chose all three at one price; the PSNR after the
+    middle two is the model's prediction (``predicted``), the first and last are rendered. ``baseline``: the plain
+    state written by the final codec (``fitted_baseline``), which is the quantisation stage's archive when no mirror
+    was kept."""
+    lossless_in = len(write_archive(source, meta))
     lossless_mirrored = len(write_archive(mirrored, meta)) if mirrored.normals.shape[0] else lossless_in
     out = [_stage("mirrors", lossless_in, lossless_mirrored, reference, mirrored_psnr, seconds.get("levels", 0.0))]
     final = len(fitted.archive)
@@ -373,9 +358,13 @@ def stages(
     errors = fitted.choice.errors
     errors = {**errors, "pruning": fitted.pruned}
     predicted = lambda *parts: mse_to_psnr(base + sum(errors[p] for p in parts))  # noqa: E731
+    unreduced = fitted.unreduced
+    pruned = LevelState(unreduced.stored.select(fitted.kept), unreduced.normals, unreduced.offsets,
+                        unreduced.bits[fitted.kept.to(unreduced.bits.device)])  # fmt: skip
     quantised = len(baseline) if not mirrored.normals.shape[0] else len(
-        write_archive(fitted.unreduced, meta, fitted.writer, fitted.classes_of()))
-    pruned_bytes = quantised if pruned is None else pruned
+        write_archive(unreduced, meta, fitted.writer, fitted.classes_of()))
+    pruned_bytes = len(write_archive(pruned, meta, fitted.writer, fitted.classes_of(fitted.kept))) if fitted.removed \
+        else quantised
     out.append(_stage("quantization", lossless_mirrored, quantised, mirrored_psnr, predicted("codec"),
                       fitted.seconds, predicted=True))  # fmt: skip
     out.append(_stage("pruning", quantised, pruned_bytes, predicted("codec"), predicted("codec", "pruning"), 0.0,

@@ -3,7 +3,7 @@ carries its progress, its cancellation and the seconds each stage took (``Report
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -11,7 +11,6 @@ import torch
 
 from ..config import PRESETS, CompressConfig, PresetSpec
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
-from .aside import Aside
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
 STAGE_SHARES = {
@@ -48,8 +47,7 @@ class Reporter:
 class Job:
     """One compression job's fixed inputs. ``images``: the posed photographs' dataset (None: the upload's own renders
     are the reference); ``checkpoint_dir``: where level decisions are saved for a rerun to resume after (None: not
-    saved); ``charts``: whether the pictures include the two charts drawn from the report alone; ``aside``: the work
-    only the report reads, running beside the stages."""
+    saved); ``charts``: whether the pictures include the two charts drawn from the report alone."""
 
     config: CompressConfig
     device: torch.device
@@ -57,7 +55,6 @@ class Job:
     images: Path | None = None
     checkpoint_dir: Path | None = None
     charts: bool = True
-    aside: Aside = field(default_factory=Aside)
 
     @property
     def preset(self) -> PresetSpec:

@@ -11,8 +11,7 @@ from ..codec import decode_archive, expand_archive, section_bytes
 from ..report import Cameras, Fidelity, GaussianCounts, Report, SectionBytes, StageReport
 from ..scene import GaussianScene
 from ..views import evaluate as scored
-from .codec_fit import INPUT_FLOAT32, PLAIN_BASELINE, PLAIN_PRUNED
-from .encode import Fitted, fitted_baseline, float32_size, pruned_size, stages
+from .encode import Fitted, fitted_baseline, stages
 from .job import Job, grown
 from .levels import Levelled, level_notes
 from .state import LevelState
@@ -60,18 +59,13 @@ def encode(levelled: Levelled, job: Job) -> Encoded:
     job.reporter("encode", 0.5, "encoding archive")
     plain_state, outcome, codec = LevelState.plain(levelled.source), levelled.levels, levelled.codec
     state = outcome.state if outcome.state.normals.shape[0] else plain_state
-    if state is plain_state:  # what the report needs of it was set aside when the codec stage fitted it
+    if state is plain_state:
         fitted = levelled.plain
-        baseline = job.aside.result(PLAIN_BASELINE, fitted_baseline, plain_state, fitted, codec.meta)
-        pruned = job.aside.result(PLAIN_PRUNED, pruned_size, fitted, codec.meta)
     else:  # a state resumed from a checkpoint was not judged in this run
         fitted = outcome.fitted or codec(state, outcome.psnr)
-        baseline = fitted_baseline(plain_state, fitted, codec.meta)
-        pruned = pruned_size(fitted, codec.meta)
-    lossless_in = job.aside.result(INPUT_FLOAT32, float32_size, plain_state, codec.meta)
-    accounted = stages(state, fitted, reference=levelled.reference, mirrored_psnr=outcome.psnr, meta=codec.meta,
-                       seconds=job.reporter.seconds, baseline=baseline, lossless_in=lossless_in,
-                       pruned=pruned)  # fmt: skip
+    baseline = fitted_baseline(plain_state, fitted, codec.meta)
+    accounted = stages(plain_state, state, fitted, reference=levelled.reference, mirrored_psnr=outcome.psnr,
+                       meta=codec.meta, seconds=job.reporter.seconds, baseline=baseline)  # fmt: skip
     job.reporter.timed("encode", time.perf_counter() - t0)
     return grown(levelled, Encoded, fitted=fitted, baseline=baseline, stages=tuple(accounted))
 
