@@ -231,7 +231,8 @@ def pack(means2d, conics, feats, opacity, rects):
 
 @_compile(parallel=False)
 def _gather(ids, start, n, rec):
-    """A tile's Gaussians as contiguous arrays: geometry [n, 7] (u, v, a, b, c, opacity, exponent cut), rects, feats."""
+    """A tile's Gaussians from ``pack``'s records as contiguous arrays: geometry [n, GEOMETRY] (u, v, a, b, c,
+    opacity, exponent cut), rects [n, 4] int32, feats [n, D]."""
     d = rec.shape[1] - GEOMETRY - 4
     geo = np.empty((n, GEOMETRY))
     box = np.empty((n, 4), dtype=np.int32)
