@@ -6,17 +6,22 @@ one header line every 30 s held 1,100 connections, exhausted a 1,024-descriptor 
 Here a head must arrive whole within ``SYMGS_HEADER_TIMEOUT`` seconds of the connection (or of the first byte of the
 next request on a kept-alive one), a body may not stall for ``SYMGS_BODY_TIMEOUT`` seconds while the server waits for
 it, and at most ``SYMGS_MAX_PENDING_CONNECTIONS`` connections wait for a head at once: one more closes the one that
-has waited longest, so that a flood makes way for a client that sends its head at once.
+has waited longest without its whole head in its socket, so that a flood makes way for a client that sends its head at
+once (asyncio accepts a burst of connections in one turn of its loop and reads them in the next, so the longest waiting
+may be a client whose head has come but not yet been read).
 """
 
 from __future__ import annotations
 
 import asyncio
+import socket
 from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from worker.gateway import get_settings
+
+_HEAD_PEEK = 64 * 1024  # past h11's default limit on a head (16 KiB) in uvicorn
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -34,7 +39,10 @@ class GuardedH11Protocol(H11Protocol):
         self._await_head()
         waiting = [c for c in self.connections if isinstance(c, GuardedH11Protocol) and c.head_since is not None]
         if len(waiting) > self.max_pending:
-            min(waiting, key=lambda c: c.head_since or 0.0)._head_late()
+            for connection in sorted(waiting, key=lambda c: c.head_since or 0.0):
+                if not connection._head_unread():
+                    connection._head_late()
+                    break
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.head_since = None
@@ -61,6 +69,19 @@ class GuardedH11Protocol(H11Protocol):
 
     def _awaiting_body(self) -> bool:
         return self.cycle is not None and self.cycle.more_body and not self.cycle.response_complete
+
+    def _head_unread(self) -> bool:
+        """Whether a whole head waits in this connection's socket, read by no one yet (a peek: it stays there)."""
+        fileno = self.transport.get_extra_info("socket").fileno()
+        if fileno < 0:
+            return False
+        peek = socket.socket(fileno=fileno)  # the transport's descriptor, borrowed: detached, never closed, below
+        try:
+            return b"\r\n\r\n" in peek.recv(_HEAD_PEEK, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+        except OSError:  # nothing there yet, or the peer gone
+            return False
+        finally:
+            peek.detach()
 
     def _await_head(self) -> None:
         self.head_since = self.loop.time()

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import statistics
 import subprocess
 import threading
 import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from service.cli.stack import SYMGS, free_port, spawn, wait_until
 
@@ -98,11 +101,15 @@ def test_a_slow_header_flood_does_not_lock_a_real_client_out(tmp_path: Path) -> 
         flood.start()
         time.sleep(2.5)  # the flood is in place, and the first heads have run out of time
         assert flood.is_alive() and flood.opened > 256, flood.opened
+        took = []
         for _ in range(5):
             start = time.monotonic()
             assert httpx.get(f"{url}/healthz", timeout=3).status_code == 200
-            assert time.monotonic() - start < 1.0
+            took.append(time.monotonic() - start)
             time.sleep(0.2)
+        # Locked out, a client waits for a slow head to run out (1 s here) or for asyncio's pause after it ran out of
+        # descriptors (1 s): the typical answer comes well before that; one answer slowed by a busy machine may not.
+        assert statistics.median(took) < 0.5, took
 
         # A head that does not arrive in time, and a body that stops coming: closed, not held.
         with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
@@ -119,4 +126,42 @@ def test_a_slow_header_flood_does_not_lock_a_real_client_out(tmp_path: Path) -> 
     finally:
         flood.halt.set()
         flood.join(timeout=10)
+        child.stop()
+    assert "out of system resource" not in child.log.read_text()  # asyncio never stopped accepting for want of them
+
+
+def test_a_client_at_the_head_of_a_burst_is_not_taken_for_a_slow_one(tmp_path: Path) -> None:
+    """The API stopped while a client sends its whole head and then slow connections arrive: resumed, asyncio accepts
+    them all in one turn of its loop and reads none yet, so the bound on connections waiting for a head is passed
+    while the client's connection is the longest waiting. It is answered; slow connections make way instead."""
+    port = free_port()
+    env = _env(SYMGS_API_KEYS="k1", SYMGS_STORAGE=str(tmp_path / "data"), SYMGS_HEADER_TIMEOUT="30",
+               SYMGS_MAX_PENDING_CONNECTIONS="2")  # fmt: skip
+    child = spawn("api", [*SYMGS, "serve", "--port", str(port)], env=env, logs=tmp_path, cwd=tmp_path)
+    url = f"http://127.0.0.1:{port}"
+    slow: list[socket.socket] = []
+    try:
+        wait_until(child, lambda: httpx.get(f"{url}/healthz", timeout=2).status_code == 200, 30, "serve")
+        child.signal_group(signal.SIGSTOP)
+        try:
+            client = socket.create_connection(("127.0.0.1", port), timeout=10)
+            client.sendall(b"GET /healthz HTTP/1.1\r\nHost: api\r\nConnection: close\r\n\r\n")
+            for _ in range(4):
+                slow.append(socket.create_connection(("127.0.0.1", port), timeout=10))
+                slow[-1].sendall(HEAD_START)
+        finally:
+            child.signal_group(signal.SIGCONT)
+        with client:
+            assert client.recv(4096).startswith(b"HTTP/1.1 200 OK"), child.tail()
+        for sock in slow[:3]:  # the longest waiting, one for each connection past the bound, well before their deadline
+            try:
+                assert sock.recv(4096) == b""
+            except ConnectionResetError:
+                pass
+        slow[3].settimeout(1)
+        with pytest.raises(TimeoutError):  # the bound reached, not passed: the newest keeps its 30 s
+            slow[3].recv(4096)
+    finally:
+        for sock in slow:
+            sock.close()
         child.stop()
