@@ -220,7 +220,7 @@ class RateDistortion:
         self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample, coded)
         self._at: dict[tuple[str, int], int] = {}
         self.lowest = RUNGS.start  # the finest rung any ladder takes: LOWEST once a budget needs more than RUNGS
-        self._energy, self._cost_err, self._nonzero = self._truncation()
+        self._cost_err, self._nonzero_rows = self._truncation()
 
     def _sh_ladders(self, sh_rest: np.ndarray, sample: np.ndarray | None, classes: np.ndarray | None) -> list[Ladder]:
         """Per coefficient (in step classes), and, with higher bands, as a palette (weighted by each row's
@@ -274,37 +274,42 @@ class RateDistortion:
         Bits scale with the share kept."""
         every = torch.ones(len(self.stored), dtype=torch.bool, device=HOST)
         kept = every if keep is None else keep.to(HOST)[self.order]
+        # What every price shares: the kept share, and the truncation costs of the kept Gaussians alone (the
+        # bisection asks for their SH degrees at each price, the choice returned for every Gaussian's).
+        share = float(kept.double().mean()) if len(kept) else 1.0
+        cost_err = self._cost_err[kept]
         lo, hi = 1e-3, 1e18  # bits per unit of MSE, bracketing every scene here
-        choice = self._at_price(hi, kept)
+        choice = self._at_price(hi, kept, share, cost_err)
         if choice.error > allowed and self.lowest > LOWEST:
             self.lowest, hi = LOWEST, 1e30  # and a price that reaches float32's precision
-            choice = self._at_price(hi, kept)
-        if choice.error > allowed:
-            return choice  # even the finest rungs overspend: the caller falls back to storing values exactly
+            choice = self._at_price(hi, kept, share, cost_err)
+        if choice.error > allowed:  # even the finest rungs overspend: the caller falls back to storing values exactly
+            return replace(choice, degrees=self._sh_degrees(choice.mu, choice.codecs["sh_rest"], self._cost_err))
         for _ in range(_MU_STEPS):
             mu = math.sqrt(lo * hi)
-            trial = self._at_price(mu, kept)
+            trial = self._at_price(mu, kept, share, cost_err)
             if trial.error <= allowed:
                 hi, choice = mu, trial
             else:
                 lo = mu
             if hi / lo < 1.02:
                 break
-        return choice
+        return replace(choice, degrees=self._sh_degrees(choice.mu, choice.codecs["sh_rest"], self._cost_err))
 
-    def _at_price(self, mu: float, keep: Tensor) -> Choice:
+    def _at_price(self, mu: float, keep: Tensor, share: float, cost_err: Tensor) -> Choice:
+        """The choice at price ``mu``, its SH degrees left out (None): ``cost_err`` [K, degree + 1] holds the
+        truncation costs of the ``keep`` [N] Gaussians, whose share of the set is ``share``."""
         codecs, rungs, bits, error = {}, {}, 0.0, 0.0
         for section in self.ladders:
             i, k, rung = self.best(section, mu)
             codecs[section], rungs[section] = rung.codec, k
             bits, error = bits + rung.bits, error + rung.error
-        share = float(keep.double().mean()) if len(keep) else 1.0
         errors = {"codec": error * share, "sh_reduction": 0.0}
-        degrees = self._sh_degrees(mu, codecs["sh_rest"], bits_of=lambda s: self._bits(s, mu))
+        degrees = self._sh_degrees(mu, codecs["sh_rest"], cost_err)
         if degrees is not None:
             # The error of truncating to degree d is column d of the truncation costs.
-            errors["sh_reduction"] = float(self._cost_err.gather(1, degrees[:, None])[keep, 0].sum())
-        return Choice(codecs, keep, degrees, errors, bits * share, mu, rungs)
+            errors["sh_reduction"] = float(cost_err.gather(1, degrees[:, None])[:, 0].sum())
+        return Choice(codecs, keep, None, errors, bits * share, mu, rungs)
 
     def prune_order(self) -> Tensor:
         """Indices [N] of the input, the Gaussians whose absence the renders would miss least first. Removal errors
@@ -313,32 +318,27 @@ class RateDistortion:
         removal = self.sens.removal(self.stored.opacities)
         return self.order[torch.argsort(removal, stable=True)]
 
-    def _bits(self, section: str, mu: float) -> float:
-        return self.best(section, mu)[2].bits
-
-    def _sh_degrees(self, mu: float, codec: SectionCodec, bits_of: Callable[[str], float]) -> Tensor | None:
-        """Each Gaussian's SH degree: the lowest whose dropped bands cost less error than their bits are worth.
-        A palette keeps whole rows (a partly dropped row would be a new palette entry): its rows go to the zero
-        entry or stay."""
+    def _sh_degrees(self, mu: float, codec: SectionCodec, cost_err: Tensor) -> Tensor | None:
+        """The SH degree of each Gaussian whose truncation costs are the rows of ``cost_err`` [M, degree + 1]: the
+        lowest whose dropped bands cost less error than their bits are worth. A palette keeps whole rows (a partly
+        dropped row would be a new palette entry): its rows go to the zero entry or stay."""
         degree = self.stored.sh_degree
         if not degree:
             return None
-        energy, cost_err, nonzero = self._energy, self._cost_err, self._nonzero
-        total_bits = bits_of("sh_rest")
-        widths = energy.new_tensor([0] + [s.stop - s.start for s in band_slices(degree)])
+        total_bits = self.best("sh_rest", mu)[2].bits
         if isinstance(codec, ShPaletteCodec):
-            row_bits = total_bits / max(int(nonzero.sum()), 1)
-            kept_bits = torch.stack([energy.new_zeros(len(energy)), energy.new_full((len(energy),), row_bits)], dim=1)
-            cost = kept_bits + mu * cost_err[:, [0, degree]]
-            return torch.where(cost.argmin(dim=1) == 0, 0, degree)
-        per_coefficient = total_bits / max(int(nonzero.sum()) * int(widths.sum()), 1)
+            row_bits = total_bits / max(self._nonzero_rows, 1)
+            # Dropped where its error costs no more than its row's bits (at once truncated to degree 0: nothing left).
+            return torch.where(mu * cost_err[:, 0] <= row_bits, 0, degree)
+        widths = cost_err.new_tensor([0] + [s.stop - s.start for s in band_slices(degree)])
+        per_coefficient = total_bits / max(self._nonzero_rows * int(widths.sum()), 1)
         kept_bits = torch.cumsum(widths, dim=0) * per_coefficient  # [degree + 1]
         cost = kept_bits[None, :] + mu * cost_err
         return cost.argmin(dim=1)
 
-    def _truncation(self) -> tuple[Tensor, Tensor, Tensor]:
-        """Band energies [N, degree]; the error [N, degree + 1] of truncating each Gaussian to degree d (the energy of
-        bands d+1..degree); which Gaussians hold any higher SH [N]."""
+    def _truncation(self) -> tuple[Tensor, int]:
+        """The error [N, degree + 1] of truncating each Gaussian to degree d (the weighted energy of bands
+        d+1..degree), and how many Gaussians hold any higher SH."""
         w = self.sens.weights["sh_rest"]
         e = w * self.stored.sh_rest.to(torch.float64) ** 2
         slices = band_slices(self.stored.sh_degree)
@@ -346,7 +346,7 @@ class RateDistortion:
         tail = torch.flip(torch.cumsum(torch.flip(energy, [1]), dim=1), [1])
         cost_err = torch.cat([tail, tail.new_zeros(len(energy), 1)], dim=1)
         nonzero = (self.stored.sh_rest != 0).reshape(len(energy), -1).any(dim=1)
-        return energy, cost_err, nonzero
+        return cost_err, int(nonzero.sum())
 
     def apply(self, choice: Choice, *, pruning: bool = True, sh_reduction: bool = True) -> tuple[Tensor, GaussianScene]:
         """The stored set (in the input's order) as the choice leaves it: removed Gaussians gone, dropped SH bands
