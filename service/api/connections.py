@@ -72,10 +72,14 @@ class GuardedH11Protocol(H11Protocol):
 
     def _head_unread(self) -> bool:
         """Whether a whole head waits in this connection's socket, read by no one yet (a peek: it stays there)."""
-        fileno = self.transport.get_extra_info("socket").fileno()
-        if fileno < 0:
+        sock = self.transport.get_extra_info("socket")
+        fileno = -1 if sock is None else sock.fileno()
+        if fileno < 0:  # closed already
             return False
-        peek = socket.socket(fileno=fileno)  # the transport's descriptor, borrowed: detached, never closed, below
+        try:
+            peek = socket.socket(fileno=fileno)  # the transport's descriptor, borrowed: detached, never closed, below
+        except OSError:
+            return False
         try:
             return b"\r\n\r\n" in peek.recv(_HEAD_PEEK, socket.MSG_PEEK | socket.MSG_DONTWAIT)
         except OSError:  # nothing there yet, or the peer gone
