@@ -283,9 +283,8 @@ class RateDistortion:
         if choice.error > allowed and self.lowest > LOWEST:
             self.lowest, hi = LOWEST, 1e30  # and a price that reaches float32's precision
             choice = self._at_price(hi, kept, share, cost_err)
-        if choice.error > allowed:  # even the finest rungs overspend: the caller falls back to storing values exactly
-            return replace(choice, degrees=self._sh_degrees(choice.mu, choice.codecs["sh_rest"], self._cost_err))
-        for _ in range(_MU_STEPS):
+        # Where even the finest rungs overspend, the choice is theirs: the caller falls back to storing values exactly.
+        for _ in range(_MU_STEPS if choice.error <= allowed else 0):
             mu = math.sqrt(lo * hi)
             trial = self._at_price(mu, kept, share, cost_err)
             if trial.error <= allowed:
