@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -40,7 +40,6 @@ from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, 
 from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, coding_pool, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
-_T = TypeVar("_T")
 MAX_LEVELS = 1 << 24  # grid cells per axis: beyond this a step is too fine to be a quantiser
 MAX_GRID_LEVELS = 4096  # distinct values up to which an attribute is tested for a grid of its own
 GRID_TOLERANCE = 1e-3  # in grid cells: float32 storage of grid values stays far below it
@@ -219,31 +218,32 @@ def _correlate(d: np.ndarray) -> np.ndarray:
     return np.stack([d[..., 1] + d[..., 0], d[..., 0], d[..., 2] + d[..., 0]], axis=-1)
 
 
-def _table(rows: np.ndarray, flat: bool) -> np.ndarray:
-    """Symbol rows [M, ..., 3] as an entropy table: one row each, or every symbol in one column (``flat``)."""
-    return rows.reshape(-1, 1) if flat else rows.reshape(len(rows), -1)
+def _table(rows: np.ndarray) -> np.ndarray:
+    """Symbol rows [M, ..., 3] as an entropy table, one row each (``entropy`` also tries every symbol as one
+    column)."""
+    return rows.reshape(len(rows), -1)
 
 
-def _smaller(q: np.ndarray, classes: np.ndarray | None, flat: bool = False) -> tuple[bytes, bool]:
+def _smaller(q: np.ndarray, classes: np.ndarray | None) -> tuple[bytes, bool]:
     """The smaller coding of RGB symbol rows ``q`` [N, ..., 3], a table per class (``_table``): as they are, or
-    decorrelated."""
-    plain, mixed = _both_ways(lambda rows: encode_groups(rows, classes, lambda r: encode_table(_table(r, flat))), q,
-                              flat)  # fmt: skip
+    decorrelated. One after the other: ``encode_table`` spreads a large table's streams over the cores."""
+    plain, mixed = (encode_groups(rows, classes, lambda r: encode_table(_table(r))) for rows in _both_ways(q))
     return (mixed, True) if len(mixed) < len(plain) else (plain, False)
 
 
-def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, flat: bool = False,
-                  level: int = ESTIMATE_LEVEL) -> float:  # fmt: skip
-    """About the bits of ``_smaller(q, classes, flat)``'s coding (its zstd streams at ``level``)."""
-    return min(_both_ways(lambda rows: groups_bits(rows, classes, lambda r: table_bits(_table(r, flat), level)), q,
-                          flat))  # fmt: skip
+def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, level: int = ESTIMATE_LEVEL) -> float:
+    """About the bits of ``_smaller(q, classes)``'s coding (its zstd streams at ``level``); a large table's two
+    ways side by side (``table_bits`` codes on one thread)."""
+    def bits(rows: np.ndarray) -> float:
+        return groups_bits(rows, classes, lambda r: table_bits(_table(r), level))
+
+    both = _both_ways(q)
+    return min(coding_pool().map(bits, both) if q.size >= PARALLEL_SYMBOLS else map(bits, both))
 
 
-def _both_ways(fn: Callable[[np.ndarray], _T], q: np.ndarray, flat: bool) -> list[_T]:
-    """``fn`` of the symbol rows ``q`` as they are and decorrelated. A flat table codes on one thread
-    (``encode_table`` spreads a table's columns), so two large ones go side by side."""
-    both = (q, _decorrelate(q))
-    return list(coding_pool().map(fn, both) if flat and q.size >= PARALLEL_SYMBOLS else map(fn, both))
+def _both_ways(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The symbol rows ``q`` as they are and decorrelated."""
+    return q, _decorrelate(q)
 
 
 def _read(codec: str, c: int) -> Callable[[bytes, int], np.ndarray]:
@@ -538,7 +538,9 @@ def band_slices(degree: int) -> list[slice]:
 class ShRestCodec:
     """Higher SH [N, K, 3]: one grid step per band, a per-Gaussian degree, only the bands up to it stored.
 
-    ``steps`` lists the step of band 1, 2, 3; a scene of lower degree uses the first ones.
+    ``steps`` lists the step of band 1, 2, 3; a scene of lower degree uses the first ones. Each band's symbols are
+    a table of one row per Gaussian (params ``layout`` "rows"), so its coefficients can each take a histogram of
+    their own; archives before format version 4 hold a band's symbols as one column, and are read as such.
     """
 
     steps: tuple[float, ...]
@@ -566,8 +568,8 @@ class ShRestCodec:
         decoded = np.zeros(values.shape, dtype=np.float32)
         for lvl, (band, rows, step) in enumerate(zip(bands, band_slices(len(bands)), self.steps), start=1):
             keep = per >= lvl
-            # zstd's matches find much of what a flat column of every coefficient holds: coded at its own level
-            bits += _smaller_bits(band[keep], None if classes is None else classes[keep], True, CODING_LEVEL)
+            # zstd's matches find much of what a band's coefficients hold: coded at its own level
+            bits += _smaller_bits(band[keep], None if classes is None else classes[keep], CODING_LEVEL)
             decoded[:, rows, :] = _sh_values(band, step, classes)
         return Estimate(bits, decoded)
 
@@ -577,15 +579,20 @@ class ShRestCodec:
         parts, mixed = [encode_table(per[:, None])], []
         for lvl, band in enumerate(bands, start=1):
             keep = per >= lvl
-            coded, flag = _smaller(band[keep], None if classes is None else classes[keep], True)
+            coded, flag = _smaller(band[keep], None if classes is None else classes[keep])
             parts.append(coded)
             mixed.append(flag)
         payload = join_parts(parts)
-        params = {"steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed}
+        params = {"steps": [float(s) for s in self.steps[:degree]], "decorrelate": mixed, "layout": "rows"}
         return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"steps", "decorrelate"}, self.name)
+        if "layout" in params:
+            _keys(params, {"steps", "decorrelate", "layout"}, self.name)
+            if params["layout"] != "rows":
+                raise ArchiveError("bad_header", f"{self.name}: layout {params['layout']!r:.40}, expected 'rows'")
+        else:
+            _keys(params, {"steps", "decorrelate"}, self.name)
         check_bands(params, {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]], self.name)
         _check_raw(self.name, shape, raw_length)
 
@@ -600,6 +607,7 @@ class ShRestCodec:
         degree = len(params["steps"])
         parts = split_parts(payload, degree + 1, self.name)
         per = decode_table(parts[0], n, 1, self.name)[:, 0]
+        rows_layout = params.get("layout") == "rows"  # before format version 4: each band's symbols in one column
         if n and (per.min() < 0 or per.max() > degree):
             raise ArchiveError("corrupt_section", f"{self.name}: a Gaussian's degree lies outside 0..{degree}")
         out = np.zeros((n, k, 3), dtype=np.float32)
@@ -607,7 +615,8 @@ class ShRestCodec:
             keep = per >= lvl
             width = rows.stop - rows.start
             kept = None if classes is None else classes[keep]
-            read = lambda part, m, w=width: _symbols(part, m * w * 3, 1, self.name).reshape(m, w, 3)  # noqa: E731
+            columns = width * 3 if rows_layout else 1
+            read = lambda part, m, w=width, c=columns: _symbols(part, m * w * 3 // c, c, self.name).reshape(m, w, 3)  # noqa: E731
             q = decode_groups(parts[lvl], kept, int(keep.sum()), read, self.name)
             values = _sh_values(_correlate(q) if params["decorrelate"][lvl - 1] else q, step, kept)
             if len(values) == n:  # every Gaussian keeps this band: a slice, not a masked scatter
