@@ -221,7 +221,7 @@ def _correlate(d: np.ndarray) -> np.ndarray:
 def _table(rows: np.ndarray) -> np.ndarray:
     """Symbol rows [M, ..., 3] as an entropy table, one row each (``entropy`` also tries every symbol as one
     column)."""
-    return rows.reshape(len(rows), -1)
+    return rows.reshape(len(rows), math.prod(rows.shape[1:]))  # -1 cannot stand for the width of no rows
 
 
 def _smaller(q: np.ndarray, classes: np.ndarray | None) -> tuple[bytes, bool]:

@@ -40,6 +40,7 @@ PRUNE_SHARES = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4)  # shares of the stored se
 _AIM = 0.9  # of the allowed error the first choice aims at: the model errs by tens of percent either way
 FitProgress = Callable[[float, str], None]  # (share of the fit done, what it is doing)
 _CLOSE = 0.8  # a passing archive that measures at least this share of the allowed error is kept without retrying
+_SAME = 0.03  # targets this close (relatively) give about one choice: aiming again at one is no new try
 
 
 # Cameras of the sensitivity's coverage: 32 at 96 px add a sixth to the fitting views' pixels. On the lego scene
@@ -257,11 +258,13 @@ def fit_codec(
         # Only a target between the two can improve: at or below one that held the floor the steps are finer and the
         # archive larger; at or above one that missed it, it misses again (the ratio drifts where the renders are
         # not linear in the steps: playbot at 2M aimed below its kept archive's target after a miss, one try wasted).
-        if aim <= held:
+        # (Within ``_SAME`` of either counts as the same target: a rescale that lands on the missed target itself, but
+        # for rounding, would render its archive again.)
+        if aim <= held * (1.0 + _SAME):
             break
-        if aim >= missed:
+        if aim >= missed * (1.0 - _SAME):
             aim = math.sqrt(missed * max(held, missed / 8.0))
-        if abs(aim / target - 1.0) < 0.03:
+        if abs(aim / target - 1.0) < _SAME:
             break
         target = aim
     if best is None:
