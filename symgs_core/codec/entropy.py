@@ -45,7 +45,7 @@ RAW, DELTA = 0, 1
 _WIDTHS = {1: np.uint8, 2: np.uint16, 4: np.uint32}
 # Tables of at least this many symbols code their columns on every core (``coding_pool``).
 PARALLEL_SYMBOLS = 1 << 15
-TRANSFORM_MARGIN = 1.1
+TRANSFORM_MARGIN = 1.1  # a transform whose order-0 entropy exceeds the other's by more is not coded (``_transforms``)
 CODING_LEVEL = 9  # zstd level of the streams ``encode_table`` writes
 ESTIMATE_LEVEL = 1  # and of those an estimate codes (``table_bits``)
 

@@ -616,7 +616,10 @@ class ShRestCodec:
             width = rows.stop - rows.start
             kept = None if classes is None else classes[keep]
             columns = width * 3 if rows_layout else 1
-            read = lambda part, m, w=width, c=columns: _symbols(part, m * w * 3 // c, c, self.name).reshape(m, w, 3)  # noqa: E731
+
+            def read(part: bytes, m: int, w: int = width, c: int = columns) -> np.ndarray:
+                return _symbols(part, m * w * 3 // c, c, self.name).reshape(m, w, 3)
+
             q = decode_groups(parts[lvl], kept, int(keep.sum()), read, self.name)
             values = _sh_values(_correlate(q) if params["decorrelate"][lvl - 1] else q, step, kept)
             if len(values) == n:  # every Gaussian keeps this band: a slice, not a masked scatter
