@@ -587,12 +587,9 @@ class ShRestCodec:
         return EncodedSection(payload, _raw_length(values.shape), params)
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        if "layout" in params:
-            _keys(params, {"steps", "decorrelate", "layout"}, self.name)
-            if params["layout"] != "rows":
-                raise ArchiveError("bad_header", f"{self.name}: layout {params['layout']!r:.40}, expected 'rows'")
-        else:
-            _keys(params, {"steps", "decorrelate"}, self.name)
+        _keys(params, {"steps", "decorrelate"} | ({"layout"} if "layout" in params else set()), self.name)
+        if params.get("layout", "rows") != "rows":  # absent: written before format version 4
+            raise ArchiveError("bad_header", f"{self.name}: layout {params['layout']!r:.40}, expected 'rows'")
         check_bands(params, {0: 0, 3: 1, 8: 2, 15: 3}[shape[1]], self.name)
         _check_raw(self.name, shape, raw_length)
 
@@ -615,10 +612,10 @@ class ShRestCodec:
             keep = per >= lvl
             width = rows.stop - rows.start
             kept = None if classes is None else classes[keep]
-            columns = width * 3 if rows_layout else 1
 
-            def read(part: bytes, m: int, w: int = width, c: int = columns) -> np.ndarray:
-                return _symbols(part, m * w * 3 // c, c, self.name).reshape(m, w, 3)
+            def read(part: bytes, m: int, w: int = width) -> np.ndarray:
+                shape = (m, w * 3) if rows_layout else (m * w * 3, 1)
+                return _symbols(part, *shape, self.name).reshape(m, w, 3)
 
             q = decode_groups(parts[lvl], kept, int(keep.sum()), read, self.name)
             values = _sh_values(_correlate(q) if params["decorrelate"][lvl - 1] else q, step, kept)
