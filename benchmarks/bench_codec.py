@@ -2,14 +2,14 @@
 
     python benchmarks/bench_codec.py --captures ../shared/data/nerf_synthetic_lego_400px \
         --scenes ../shared/data/kacytran_try_iter7000/point_cloud.ply ../shared/data/fox_cc0_mujoco_warp/fox.ply \
-        --trained-match kacytran --work bench-out/pipeline-capture --out bench-out/codec -- --device cpu
+        --work bench-out/pipeline-capture --out bench-out/codec -- --device cpu
 
-Uploads from a trainer hold float32 values on no grid; most shared scenes were decoded from SOG, `.spz` or compressed
-PLY, whose values sit on grids those formats re-encode almost losslessly. So the trained scenes come first and the
-two kinds are reported apart (``symgs bench --trained``): the scenes trained here from the photographs of each
-``--captures`` folder (``symgs_core.bench.capture``, trained once and read from ``--work`` after, as the
-pipeline-capture bench does), the ``--scenes`` whose path holds a ``--trained-match`` name, then the other
-``--scenes``. Every argument after ``--`` goes to ``symgs bench``.
+Uploads from a trainer hold float32 values on no grid; most shared scenes were decoded from SOG, `.spz`, `.splat` or
+compressed PLY, whose values sit on grids those formats re-encode almost losslessly. So the trained scenes come first
+and the two kinds are reported apart: the scenes trained here from the photographs of each ``--captures`` folder
+(``symgs_core.bench.capture``, trained once and read from ``--work`` after, as the pipeline-capture bench does;
+``symgs bench --trained``), then the ``--scenes``, each told by its own values (``symgs_core.bench.kinds``). Every
+argument after ``--`` goes to ``symgs bench``.
 """
 
 from __future__ import annotations
@@ -29,9 +29,6 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--captures", nargs="*", default=[], type=Path, help="photograph folders to train scenes from")
     parser.add_argument("--scenes", nargs="*", default=[], type=Path, help="scenes (.ply)")
-    parser.add_argument("--trained-match", nargs="*", default=[],
-                        help="the scenes whose path holds one of these are as a trainer wrote them; the others were "
-                        "decoded from quantised containers")
     parser.add_argument("--work", type=Path, required=True, help="where the captures' trained scenes are kept")
     parser.add_argument("--out", type=Path, required=True)
     args, rest = parser.parse_known_args()
@@ -50,9 +47,7 @@ def main() -> int:
         named.unlink(missing_ok=True)
         named.symlink_to(ply.resolve())
         trained.append(named)
-    matched = [p for p in args.scenes if any(m in str(p) for m in args.trained_match)]
-    trained += matched
-    scenes = [str(p) for p in [*trained, *(p for p in args.scenes if p not in matched)]]
+    scenes = [str(p) for p in [*trained, *args.scenes]]
     return cli(["bench", *scenes, "--out", str(args.out), "--trained", *map(str, trained), *rest])
 
 

@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="folder for bench.json, bench.md, charts/ and files/")
     p.add_argument("--presets", default=",".join(PRESET_NAMES), help="comma-separated presets (default: all)")
     p.add_argument("--mirrors", choices=["both", "on", "off"], default="both", help="runs with and/or without mirrors")
-    p.add_argument("--sweep", type=int, default=6,
+    p.add_argument("--sweep", type=int, default=8,
                    help="at most this many runs of ours at budgets aimed at the peers' PSNRs (0: none)")
     p.add_argument("--no-peers", action="store_true", help="no peers: our runs only")
     p.add_argument("--no-sog", action="store_true", help="leave out SOG (its k-means takes minutes on a CPU)")
@@ -31,9 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sog-timeout", type=float, default=900.0, help="seconds for SOG (writing and decoding back)")
     p.add_argument("--other-seed", type=int, default=1, help="seed of the second, independent evaluation rig")
     p.add_argument("--other-views", type=int, default=8, help="cameras of the second rig")
-    p.add_argument("--trained", type=Path, nargs="*", default=None,
-                   help="those of the scenes that are as a trainer wrote them (float32); the others are taken as "
-                   "decoded from quantised containers, and the two are reported apart")
+    p.add_argument("--trained", type=Path, nargs="*", default=[],
+                   help="those of the scenes known to be as a trainer wrote them; the others are told by their values "
+                   "(a field on a container's grid: decoded from one), and the two kinds are reported apart")
     # Left out, each setting takes the preset's value (symgs_core.config), as `symgs compress` does.
     add_job_options(p, BENCH_SETTINGS)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto")
@@ -73,9 +73,9 @@ def _bench(args: argparse.Namespace) -> int:
         raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
     check_seed("--other-seed", args.other_seed)
     check_output("--out", args.out, folder=True)
-    if args.trained is not None and not set(args.trained) <= set(args.scenes):
+    if not set(args.trained) <= set(args.scenes):
         raise CliError("--trained names scenes that are not among the scenes benched")
-    trained = None if args.trained is None else [scene in set(args.trained) for scene in args.scenes]
+    trained = [True if scene in set(args.trained) else None for scene in args.scenes]
     overrides = {**job_overrides(args, BENCH_SETTINGS), "device": args.device}
     exe, why = _splat_transform(args)
     peers = () if args.no_peers else tuple(p for p in PEERS if not (args.no_sog and p.slow))

@@ -7,8 +7,9 @@ independent rig (another seed: other directions over the same distances). Our ru
 cameras, which neither rig contains.
 
 Equal fidelity: the sweep adds runs of ours (mirrors on, the preset nearest to each floor) at budgets chosen from
-the peers' PSNRs until our curve spans every peer's PSNR, and a run of ours reaches on the other rig the PSNR each
-peer we claim to beat has there, or the sweep's runs are spent; each peer row then carries our size at its PSNR
+the peers' PSNRs until our curve spans every peer's PSNR, a run of ours reaches on the other rig the PSNR each
+peer we claim to beat has there, and every peer's PSNR has a point of our curve near it, or the sweep's runs are
+spent; each peer row then carries our size at its PSNR
 (``curve.size_at``) and whether that claim still holds on the other rig.
 """
 
@@ -35,6 +36,10 @@ from .rows import TOLERANCE_DB, BenchRow, Role
 OURS = "symgs"  # mirrors on (the product's default): our curve whenever mirrors run
 OURS_PLAIN = "symgs no mirrors"
 Say = Callable[[str], None]
+AIM_PAST_DB = 0.5  # a sweep run meant to span a PSNR aims this far past it
+NEAR_DB = 1.5  # a peer's PSNR farther than this from every point of our curve gets a run of its own
+MIN_FLOOR_GAP_DB = 0.5  # two runs' floors closer than this say nothing of the slope between them
+SLOPE_RANGE = (0.25, 2.0)  # dB of PSNR per dB of floor the aim assumes, at least and at most
 
 
 @dataclass(frozen=True)
@@ -50,7 +55,7 @@ class BenchSettings:
     unavailable: str = "splat-transform is not installed"
     peer_timeout: float = 300.0  # seconds per peer (writing its file and decoding it back)
     slow_timeout: float = 900.0  # the same for a slow peer (SOG on a CPU)
-    sweep: int = 6  # at most this many runs of ours added to span the peers' PSNRs
+    sweep: int = 8  # at most this many runs of ours added to span and meet the peers' PSNRs
     other_seed: int = 1  # the second rig's seed (the runs' own seed is overrides["seed"], default 0)
     other_views: int = 8
 
@@ -166,32 +171,48 @@ def next_floor(
     method: str = OURS,
     other: list[float] | None = None,
 ) -> float | None:
-    """The fitting floor for our next sweep run: aimed past the first target PSNR our curve does not span (a peer's
-    evaluation PSNR), then at the first ``other`` PSNR no lossy run of ours reaches on the other rig (where a claim
-    is checked), corrected by how far the run of ours nearest it on that rig landed from its floor; None when
-    every target is met."""
+    """The fitting floor for our next sweep run, or None when every target is met. Aimed, in this order: past the
+    first target PSNR our curve does not span (a peer's evaluation PSNR); past the first ``other`` PSNR no lossy run
+    of ours reaches on the other rig (where a claim is checked); at the first target with no point of our curve
+    within ``NEAR_DB`` of it (our size there would be interpolated across a wide gap, a guess)."""
     main = curve_points(rows, scene, method)
-    missing = [("psnr_db", t) for t in targets if t < LOSSLESS_DB and not curve.spans(main, t)]
+    missing = [("psnr_db", t, AIM_PAST_DB) for t in targets if t < LOSSLESS_DB and not curve.spans(main, t)]
     if not missing and other:
         reached = curve.front(curve_points(rows, scene, method, "psnr_other_db"))
-        missing = [("psnr_other_db", t) for t in other if t < LOSSLESS_DB and (not reached or reached[-1][1] < t)]
+        missing = [("psnr_other_db", t, AIM_PAST_DB) for t in other
+                   if t < LOSSLESS_DB and (not reached or reached[-1][1] < t)]  # fmt: skip
+    if not missing:
+        ahead = curve.front(main)
+        missing = [("psnr_db", t, 0.0) for t in targets
+                   if t < LOSSLESS_DB and ahead and min(abs(p - t) for _, p in ahead) > NEAR_DB]  # fmt: skip
     if not missing:
         return None
-    field, target = missing[0]
+    field, target, past = missing[0]
     # Only runs that held their floor say where a floor lands: a preset that fits nothing (fixed steps) does not.
     ours = [r for r in rows if r.scene == scene and r.method == method and r.ok
             and (r.preset not in PRESETS or PRESETS[r.preset].fitted)]  # fmt: skip
     figures = [(getattr(r, field), r.floor_db) for r in ours]
     landed = [(p, f) for p, f in figures if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
-    # The offset of the run that landed nearest the target: runs far from it, at other steps, land differently.
-    offset = min(landed, key=lambda pf: abs(pf[0] - target), default=(0.0, 0.0))
-    offset_db = offset[0] - offset[1]
     front = curve.front(curve_points(rows, scene, method, field))
     up = not front or target > front[-1][1]
-    floor = target - offset_db + (0.5 if up else -0.5)
+    floor = _aim(landed, target + (past if up else -past))
     while any(abs(floor - t) < 0.25 for t in tried):
         floor += 1.0 if up else -1.0
     return floor
+
+
+def _aim(landed: list[tuple[float, float]], psnr: float) -> float:
+    """The floor at which a run should land at ``psnr``: from the run that landed nearest it (runs far from it, at
+    other steps, land differently), along the slope between that run and the next nearest of another floor. Near
+    the lossless end a higher floor buys less PSNR on the cameras that fitted nothing (0.3 dB a dB on the lego), so
+    one dB a dB would aim short run after run; the slope is bounded so that two runs close together cannot send
+    the next one far off. Without runs, the floor is the PSNR itself."""
+    if not landed:
+        return psnr
+    nearest = sorted(landed, key=lambda pf: abs(pf[0] - psnr))
+    p0, f0 = nearest[0]
+    slope = next((((p1 - p0) / (f1 - f0)) for p1, f1 in nearest[1:] if abs(f1 - f0) >= MIN_FLOOR_GAP_DB), 1.0)
+    return f0 + (psnr - p0) / min(max(slope, SLOPE_RANGE[0]), SLOPE_RANGE[1])
 
 
 def other_targets(rows: list[BenchRow], scene: str, method: str) -> list[float]:

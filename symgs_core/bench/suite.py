@@ -22,6 +22,17 @@ from .rows import SCHEMA, TOLERANCE_DB, BenchRow, claims
 from .run import BenchSettings, bench_scene, scene_name
 
 
+def _kind(ply: Path, trained: bool | None) -> str | None:
+    """Why ``ply`` counts as decoded from a quantised container, or None when it is as a trainer wrote it: as the
+    caller said, or else as its values say."""
+    if trained is not None:
+        return None if trained else "said to be"
+    from ..ply import load_scene
+    from .kinds import container_grid
+
+    return container_grid(load_scene(ply))
+
+
 def _names(scenes: list[Path]) -> list[str]:
     """A distinct name per scene (a second scene of the same name gets a numbered suffix)."""
     names: list[str] = []
@@ -32,8 +43,8 @@ def _names(scenes: list[Path]) -> list[str]:
 
 
 def document(rows: list[BenchRow], scenes: list[Path], names: list[str], settings: BenchSettings,
-             info: dict[str, Any], trained: list[bool | None]) -> dict[str, Any]:  # fmt: skip
-    """The content of ``bench.json``."""
+             info: dict[str, Any], trained: list[bool | None], grids: list[str | None]) -> dict[str, Any]:  # fmt: skip
+    """The content of ``bench.json``; ``grids``: per scene, why it counts as decoded from a container."""
     base = settings.config("balanced")
     found = claims(rows)
     return {
@@ -53,8 +64,8 @@ def document(rows: list[BenchRow], scenes: list[Path], names: list[str], setting
                       "distances": list(DISTANCES), "note": "an independent rig: other directions"},
         },  # fmt: skip
         # The file's name, not where it lay: bench.json travels between machines.
-        "scenes": [{"scene": name, "input": ply.name, "bytes": ply.stat().st_size, "trained": kind}
-                   for ply, name, kind in zip(scenes, names, trained)],  # fmt: skip
+        "scenes": [{"scene": name, "input": ply.name, "bytes": ply.stat().st_size, "trained": kind, "grid": grid}
+                   for ply, name, kind, grid in zip(scenes, names, trained, grids)],  # fmt: skip
         "rows": [r.as_json() for r in rows],
         "claims": found,
         "claims_failing_on_other_cameras": [c for c in found if c["holds_on_other_cameras"] is False],
@@ -80,12 +91,21 @@ def write_charts(rows: list[BenchRow], input_bytes: dict[str, int], folder: Path
 def run_bench(scenes: list[Path], out: Path, settings: BenchSettings, say: Callable[[str], None] | None = None,
               trained: Sequence[bool | None] | None = None) -> dict[str, Any]:  # fmt: skip
     """Bench every scene into ``out``; returns the ``bench.json`` document (also written). ``trained``: per scene,
-    whether it is as a trainer wrote it or decoded from a quantised container (None: not said)."""
+    whether it is as a trainer wrote it or decoded from a quantised container; a scene not said (None) is told by
+    its own values (``kinds.container_grid``)."""
     from .tables import markdown
 
+    say = say or (lambda message: None)
     out.mkdir(parents=True, exist_ok=True)
     names = _names(scenes)
-    kinds: list[bool | None] = list(trained) if trained is not None else [None] * len(scenes)
+    said: list[bool | None] = list(trained) if trained is not None else [None] * len(scenes)
+    evidence = [_kind(ply, kind) for ply, kind in zip(scenes, said)]
+    # Trained scenes first: they are the codec's main evidence, and the tables keep the order benched.
+    order = sorted(range(len(scenes)), key=lambda i: evidence[i] is not None)
+    scenes, names, evidence = [scenes[i] for i in order], [names[i] for i in order], [evidence[i] for i in order]
+    kinds: list[bool | None] = [grid is None for grid in evidence]
+    for name, grid in zip(names, evidence):
+        say(f"{name}: " + ("as a trainer wrote it" if grid is None else f"decoded from a container ({grid})"))
     tool = None
     if settings.splat_transform is not None:
         from .splat_transform import version
@@ -97,7 +117,7 @@ def run_bench(scenes: list[Path], out: Path, settings: BenchSettings, say: Calla
         rows += bench_scene(ply, out, settings, say, name, kind)
     info["finished"] = stamp.stamp(tool)["date"]
     info["load_at_end"] = stamp.machine()["load"]
-    doc = document(rows, scenes, names, settings, info, kinds)
+    doc = document(rows, scenes, names, settings, info, kinds, evidence)
     (out / "bench.json").write_text(json.dumps(doc, indent=1))
     (out / "bench.md").write_text(markdown(rows))
     write_charts(rows, {name: ply.stat().st_size for ply, name in zip(scenes, names)}, out / "charts")

@@ -17,7 +17,16 @@ from service.cli.codec import HALF_PLY
 from symgs_core.bench import curve
 from symgs_core.bench.half_ply import EXTENSION, HalfPlyError, read_half_ply, write_half_ply
 from symgs_core.bench.rows import REQUIRED, SCHEMA, TOLERANCE_DB, BenchRow, claims
-from symgs_core.bench.run import OURS, BenchSettings, bench_scene, equal_fidelity, next_floor, other_targets
+from symgs_core.bench.run import (
+    NEAR_DB,
+    OURS,
+    SLOPE_RANGE,
+    BenchSettings,
+    bench_scene,
+    equal_fidelity,
+    next_floor,
+    other_targets,
+)
 from symgs_core.config import CompressConfig, budget_for_floor
 from symgs_core.export import save_scene
 from symgs_core.pipeline import compress, decompress
@@ -99,7 +108,7 @@ def test_a_claim_holds_within_the_tolerance() -> None:
 
 def test_the_sweep_aims_past_the_targets_the_curve_does_not_span() -> None:
     rows = [ours(40.0, 40.0, floor=42.0), ours(44.0, 44.0, floor=46.0)]  # evaluation lands 2 dB under the floor
-    assert next_floor(rows, "s", [42.0], []) is None  # spanned
+    assert next_floor(rows, "s", [43.0], []) is None  # spanned, and a run within NEAR_DB of it
     up = next_floor(rows, "s", [42.0, 60.0], [])
     assert up == pytest.approx(60.0 + 2.0 + 0.5)
     assert next_floor(rows, "s", [60.0], [up]) == pytest.approx(up + 1.0)  # never the same floor twice
@@ -110,7 +119,7 @@ def test_the_sweep_aims_at_a_claimed_peers_psnr_on_the_other_rig() -> None:
     """Our runs lose 3 dB on the other rig where the peer gains half a dB: the claim at 45 dB cannot be checked
     until a run of ours reaches the peer's other-rig PSNR (less the tolerance) there, so the sweep aims at it, from
     the offset of the run that landed nearest."""
-    rows = [ours(40.0, 37.0, floor=40.0), ours(50.0, 47.0, floor=50.0)]
+    rows = [ours(40.0, 37.0, floor=40.0), ours(45.0, 42.0, floor=45.0), ours(50.0, 47.0, floor=50.0)]
     claimed = peer(round(oracle(45.0) * 2), 45.0, 48.5)
     beaten = peer(round(oracle(45.0) / 2), 45.0, 60.0)  # ours is larger here: no claim, nothing to check
     rows += [claimed, beaten]
@@ -132,7 +141,29 @@ def test_the_sweep_ignores_where_an_unfitted_preset_landed() -> None:
     high = BenchRow("s", OURS, "preset", "ok", "h.symgs", preset="high", bytes=round(oracle(49.2)), psnr_db=49.2,
                     psnr_other_db=47.0, floor_db=46.3)  # fmt: skip
     low = ours(38.2, 36.7, floor=35.9)
-    assert next_floor([low, high, fast], "s", [58.0], []) == pytest.approx(58.0 - (49.2 - 46.3) + 0.5)
+    slope = (49.2 - 38.2) / (46.3 - 35.9)  # between the fitted runs: the fast run's PSNR says nothing of a floor
+    assert next_floor([low, high, fast], "s", [58.0], []) == pytest.approx(46.3 + (58.0 + 0.5 - 49.2) / slope)
+
+
+def test_the_sweep_puts_a_run_near_every_peers_psnr() -> None:
+    """A peer's PSNR inside our curve but 5 dB from its every point: our size there would be interpolated across
+    10 dB, so the sweep aims a run at it (no margin past it); a run that lands within NEAR_DB of it ends the aim."""
+    rows = [ours(40.0, 40.0, floor=40.0), ours(50.0, 50.0, floor=50.0)]
+    assert next_floor(rows, "s", [45.0], []) == pytest.approx(45.0)
+    rows.append(ours(45.0 + NEAR_DB - 0.1, 45.0, floor=45.0))
+    assert next_floor(rows, "s", [45.0], [45.0]) is None
+
+
+def test_the_sweep_aims_along_the_slope_its_runs_landed_on() -> None:
+    """Near the lossless end a higher floor buys little PSNR on the other rig (the lego: 0.33 dB a dB). Aimed at one
+    dB a dB, run after run fell short of the peer's 60.72 dB there; along the slope of the two nearest runs one run
+    reaches it. Two runs on a near-flat slope do not send the next floor past the slope's bound."""
+    lego = [ours(60.32, 60.03, floor=57.98), ours(60.77, 60.36, floor=59.17), ours(61.04, 60.65, floor=60.04)]
+    slope = (60.65 - 60.36) / (60.04 - 59.17)
+    assert next_floor(lego, "s", [60.5], [], other=[60.72]) == pytest.approx(60.04 + (60.72 + 0.5 - 60.65) / slope)
+    flat = [ours(50.0, 50.0, floor=50.0), ours(50.05, 50.05, floor=51.0)]
+    low, _ = SLOPE_RANGE
+    assert next_floor(flat, "s", [52.0], []) == pytest.approx(51.0 + (52.0 + 0.5 - 50.05) / low)
 
 
 def test_half_ply_round_trip_and_refusals() -> None:
