@@ -40,6 +40,7 @@ AIM_PAST_DB = 0.5  # a sweep run meant to span a PSNR aims this far past it
 NEAR_DB = 1.5  # a peer's PSNR farther than this from every point of our curve gets a run of its own
 MIN_FLOOR_GAP_DB = 0.5  # two runs' floors closer than this say nothing of the slope between them
 SLOPE_RANGE = (0.25, 2.0)  # dB of PSNR per dB of floor the aim assumes, at least and at most
+SLOPE_NEAR_DB = 3.0  # two runs say the slope where the next should land when both landed this near it
 
 
 @dataclass(frozen=True)
@@ -191,8 +192,9 @@ def next_floor(
     # Only runs that held their floor say where a floor lands: a preset that fits nothing (fixed steps) does not.
     ours = [r for r in rows if r.scene == scene and r.method == method and r.ok
             and (r.preset not in PRESETS or PRESETS[r.preset].fitted)]  # fmt: skip
-    figures = [(getattr(r, field), r.floor_db) for r in ours]
-    landed = [(p, f) for p, f in figures if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]
+    figures = [(getattr(r, field), r.floor_db, r.preset) for r in ours]
+    landed = [(p, f, preset) for p, f, preset in figures
+              if p is not None and f is not None and math.isfinite(p) and math.isfinite(f)]  # fmt: skip
     front = curve.front(curve_points(rows, scene, method, field))
     up = not front or target > front[-1][1]
     floor = _aim(landed, target + (past if up else -past))
@@ -201,18 +203,24 @@ def next_floor(
     return floor
 
 
-def _aim(landed: list[tuple[float, float]], psnr: float) -> float:
-    """The floor at which a run should land at ``psnr``: from the run that landed nearest it (runs far from it, at
-    other steps, land differently), along the slope between that run and the next nearest of another floor. Near
-    the lossless end a higher floor buys less PSNR on the cameras that fitted nothing (0.3 dB a dB on the lego), so
-    one dB a dB would aim short run after run; the slope is bounded so that two runs close together cannot send
-    the next one far off. Without runs, the floor is the PSNR itself."""
+def _aim(landed: list[tuple[float, float, str | None]], psnr: float) -> float:
+    """The floor at which a run should land at ``psnr``, from the (PSNR, floor, preset) of the runs that held their
+    floor: from the run that landed nearest it (runs far from it, at other steps, land differently), one dB of floor
+    a dB of PSNR, or along the slope between it and another run of its preset when both landed within
+    ``SLOPE_NEAR_DB`` of it. Near the lossless end a higher floor buys less PSNR on the cameras that fitted nothing
+    (0.3 dB a dB on the lego), so one dB a dB aimed short run after run there; a slope between presets, or across
+    many dB, says little (the lego's balanced and high presets: 0.27 dB a dB, which sent a run 13 dB past its
+    target), and the slope is bounded so that two runs close together cannot send the next far off. Without runs,
+    the floor is the PSNR itself."""
     if not landed:
         return psnr
-    nearest = sorted(landed, key=lambda pf: abs(pf[0] - psnr))
-    p0, f0 = nearest[0]
-    slope = next((((p1 - p0) / (f1 - f0)) for p1, f1 in nearest[1:] if abs(f1 - f0) >= MIN_FLOOR_GAP_DB), 1.0)
-    return f0 + (psnr - p0) / min(max(slope, SLOPE_RANGE[0]), SLOPE_RANGE[1])
+    nearest = sorted(landed, key=lambda run: abs(run[0] - psnr))
+    p0, f0, preset = nearest[0]
+    near = [(p, f) for p, f, other in nearest[1:] if other == preset and abs(f - f0) >= MIN_FLOOR_GAP_DB]
+    slope = 1.0
+    if abs(p0 - psnr) <= SLOPE_NEAR_DB and near and abs(near[0][0] - psnr) <= SLOPE_NEAR_DB:
+        slope = min(max((near[0][0] - p0) / (near[0][1] - f0), SLOPE_RANGE[0]), SLOPE_RANGE[1])
+    return f0 + (psnr - p0) / slope
 
 
 def other_targets(rows: list[BenchRow], scene: str, method: str) -> list[float]:

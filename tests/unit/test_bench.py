@@ -141,8 +141,7 @@ def test_the_sweep_ignores_where_an_unfitted_preset_landed() -> None:
     high = BenchRow("s", OURS, "preset", "ok", "h.symgs", preset="high", bytes=round(oracle(49.2)), psnr_db=49.2,
                     psnr_other_db=47.0, floor_db=46.3)  # fmt: skip
     low = ours(38.2, 36.7, floor=35.9)
-    slope = (49.2 - 38.2) / (46.3 - 35.9)  # between the fitted runs: the fast run's PSNR says nothing of a floor
-    assert next_floor([low, high, fast], "s", [58.0], []) == pytest.approx(46.3 + (58.0 + 0.5 - 49.2) / slope)
+    assert next_floor([low, high, fast], "s", [58.0], []) == pytest.approx(58.0 - (49.2 - 46.3) + 0.5)
 
 
 def test_the_sweep_puts_a_run_near_every_peers_psnr() -> None:
@@ -164,6 +163,21 @@ def test_the_sweep_aims_along_the_slope_its_runs_landed_on() -> None:
     flat = [ours(50.0, 50.0, floor=50.0), ours(50.05, 50.05, floor=51.0)]
     low, _ = SLOPE_RANGE
     assert next_floor(flat, "s", [52.0], []) == pytest.approx(51.0 + (52.0 + 0.5 - 50.05) / low)
+
+
+def test_the_sweep_aims_one_db_a_db_from_runs_of_other_presets_or_far_away() -> None:
+    """The lego's balanced and high presets landed 0.27 dB of PSNR a dB of floor apart; along that slope a run aimed
+    at float16's 60.14 dB was sent to a floor of 97 (it landed at 64 dB, 13 dB past the target it was to span).
+    Runs of two presets, or far from the target, aim one dB a dB from the nearest."""
+
+    def preset_run(preset: str, psnr: float, floor: float) -> BenchRow:
+        return BenchRow("s", OURS, "preset", "ok", f"{preset}.symgs", preset=preset, bytes=round(oracle(psnr)),
+                        psnr_db=psnr, psnr_other_db=psnr, floor_db=floor)  # fmt: skip
+
+    rows = [preset_run("balanced", 45.70, 41.46), preset_run("high", 47.01, 46.33)]
+    assert next_floor(rows, "s", [60.14], []) == pytest.approx(46.33 + (60.14 + 0.5 - 47.01))
+    far = [ours(40.0, 40.0, floor=38.0), ours(50.0, 50.0, floor=60.0)]  # the same preset, 10 dB apart
+    assert next_floor(far, "s", [55.0], []) == pytest.approx(60.0 + 5.5)
 
 
 def test_half_ply_round_trip_and_refusals() -> None:
