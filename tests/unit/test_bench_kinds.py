@@ -9,14 +9,13 @@ import pytest
 import torch
 
 from symgs_core.bench.kinds import CHUNK, chunk_lattice_share, container_grid
-from symgs_core.synthetic import synthetic_scene
+from symgs_core.scene import GaussianScene
 
 
-def trained(n: int = 4096):
-    scene = synthetic_scene("global", n=n, seed=3, sh_degree=1).scene
+def trained(n: int = 4096) -> GaussianScene:
+    """A trainer's values: every field continuous (the synthetic scenes' generator may repeat values)."""
     g = torch.Generator().manual_seed(5)
-    # A trainer's values: every field continuous (the generator's own may repeat values).
-    return scene.__class__(
+    return GaussianScene(
         means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
         scales=torch.randn(n, 3, generator=g) - 4, opacities=torch.randn(n, generator=g),
         sh_dc=torch.randn(n, 3, generator=g), sh_rest=torch.randn(n, 3, 3, generator=g) * 0.1,
