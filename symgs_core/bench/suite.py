@@ -26,7 +26,7 @@ def _kind(ply: Path, trained: bool | None) -> str | None:
     """Why ``ply`` counts as decoded from a quantised container, or None when it is as a trainer wrote it: as the
     caller said, or else as its values say."""
     if trained is not None:
-        return None if trained else "said to be"
+        return None if trained else "as the caller said"
     from ..ply import load_scene
     from .kinds import container_grid
 
