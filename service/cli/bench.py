@@ -73,9 +73,10 @@ def _bench(args: argparse.Namespace) -> int:
         raise CliError("--sweep must be >= 0, --other-views >= 1, and the timeouts positive")
     check_seed("--other-seed", args.other_seed)
     check_output("--out", args.out, folder=True)
-    if not set(args.trained) <= set(args.scenes):
+    known = set(args.trained)
+    if not known <= set(args.scenes):
         raise CliError("--trained names scenes that are not among the scenes benched")
-    trained = [True if scene in set(args.trained) else None for scene in args.scenes]
+    trained = [scene in known for scene in args.scenes]
     overrides = {**job_overrides(args, BENCH_SETTINGS), "device": args.device}
     exe, why = _splat_transform(args)
     peers = () if args.no_peers else tuple(p for p in PEERS if not (args.no_sog and p.slow))

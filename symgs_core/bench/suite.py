@@ -22,11 +22,11 @@ from .rows import SCHEMA, TOLERANCE_DB, BenchRow, claims
 from .run import BenchSettings, bench_scene, scene_name
 
 
-def _kind(ply: Path, trained: bool | None) -> str | None:
+def _kind(ply: Path, trained: bool) -> str | None:
     """Why ``ply`` counts as decoded from a quantised container, or None when it is as a trainer wrote it: as the
-    caller said, or else as its values say."""
-    if trained is not None:
-        return None if trained else "as the caller said"
+    caller said (``trained``), or else as its values say."""
+    if trained:
+        return None
     from ..ply import load_scene
     from .kinds import container_grid
 
@@ -89,16 +89,16 @@ def write_charts(rows: list[BenchRow], input_bytes: dict[str, int], folder: Path
 
 
 def run_bench(scenes: list[Path], out: Path, settings: BenchSettings, say: Callable[[str], None] | None = None,
-              trained: Sequence[bool | None] | None = None) -> dict[str, Any]:  # fmt: skip
+              trained: Sequence[bool] | None = None) -> dict[str, Any]:  # fmt: skip
     """Bench every scene into ``out``; returns the ``bench.json`` document (also written). ``trained``: per scene,
-    whether it is as a trainer wrote it or decoded from a quantised container; a scene not said (None) is told by
-    its own values (``kinds.container_grid``)."""
+    whether it is known to be as a trainer wrote it; the others are told trained or decoded from a quantised
+    container by their own values (``kinds.container_grid``)."""
     from .tables import markdown
 
     say = say or (lambda message: None)
     out.mkdir(parents=True, exist_ok=True)
     names = _names(scenes)
-    said: list[bool | None] = list(trained) if trained is not None else [None] * len(scenes)
+    said = list(trained) if trained is not None else [False] * len(scenes)
     evidence = [_kind(ply, kind) for ply, kind in zip(scenes, said)]
     # Trained scenes first: they are the codec's main evidence, and the tables keep the order benched.
     order = sorted(range(len(scenes)), key=lambda i: evidence[i] is not None)
