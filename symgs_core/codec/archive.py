@@ -32,6 +32,7 @@ from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
 from .classes import MAX_CLASS
 from .errors import ArchiveError
+from .neighbours import Neighbours
 from .registry import ATTRIBUTE_NAMES, SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
 from .section import MAX_MAGNITUDE, SectionCodec
 
@@ -159,8 +160,14 @@ def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lo
         raise ValueError(f"plane offsets must be within +-{MAX_MAGNITUDE:g}, got {offsets.tolist()}")
     table, payloads, offset = [], [], 0
     classes = arrays["classes"] if arrays["classes"].any() else None
+    neighbours = None
     for name in SECTION_NAMES:
-        coded = codecs[name].encode(arrays[name], classes=classes if name in ATTRIBUTE_NAMES else None)
+        attribute = name in ATTRIBUTE_NAMES
+        coded = codecs[name].encode(arrays[name], classes=classes if attribute else None, neighbours=neighbours)
+        if name == "means":  # what a reader finds its neighbours by: the positions as it decodes them
+            shape = arrays[name].shape
+            points = codecs[name].decode(coded.payload, shape, coded.params, coded.raw_length, classes=classes)
+            neighbours = Neighbours.of(points, classes)
         table.append(
             {
                 "name": name,
@@ -278,6 +285,8 @@ def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimi
             )
         if not isinstance(entry["params"], dict):
             raise _bad(f"section {name!r} params must be an object")
+        if version < 5 and "predict" in entry["params"]:  # predictions from neighbours came with version 5
+            raise _bad(f"section {name!r}: predicted symbols in an archive of format version {version}")
         codec = section_codec(_name(entry["codec"], f"section {name!r} codec"), name)
         codec.check(shapes[name], entry["params"], raw_length)
         sections.append(_Section(name, codec, shapes[name], offset, length, raw_length, entry["params"]))
@@ -359,10 +368,11 @@ def section_bytes(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> list
     return out
 
 
-def _decode_section(data: bytes, s: _Section, classes: np.ndarray | None = None) -> np.ndarray:
+def _decode_section(data: bytes, s: _Section, classes: np.ndarray | None = None,
+                    neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
     payload = bytes(memoryview(data)[s.start : s.start + s.length])
     try:
-        values = s.codec.decode(payload, s.shape, s.params, s.raw_length, classes=classes)
+        values = s.codec.decode(payload, s.shape, s.params, s.raw_length, classes=classes, neighbours=neighbours)
     except ArchiveError:
         raise
     except (ValueError, IndexError, OverflowError, TypeError) as exc:  # a codec tripped on hostile bytes
@@ -421,7 +431,10 @@ def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> Arc
     _check_expansion(bits, header["sh_degree"], len(data), limits)
     classes = _decode_section(data, by_name["classes"]) if "classes" in by_name else None
     given = classes if classes is not None and classes.any() else None
-    arrays = {name: _decode_section(data, by_name[name], given) for name in ATTRIBUTE_NAMES}
+    arrays = {"means": _decode_section(data, by_name["means"], given)}
+    predicted = any(by_name[name].params.get("predict") for name in ATTRIBUTE_NAMES)
+    neighbours = Neighbours.of(arrays["means"], given) if predicted else None
+    arrays |= {name: _decode_section(data, by_name[name], given, neighbours) for name in ATTRIBUTE_NAMES[1:]}
     stored = GaussianScene(**{k: torch.from_numpy(v) for k, v in arrays.items()})
     return ArchiveContents(stored, planes, bits, header["meta"], None if classes is None else torch.from_numpy(classes))
 

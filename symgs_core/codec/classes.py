@@ -19,13 +19,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
 from .section import EncodedSection, SectionKind, check_params, join_parts, split_parts
+
+if TYPE_CHECKING:
+    from .neighbours import Neighbours
 
 MAX_CLASS = 7  # readers accept classes 0..MAX_CLASS; the pipeline chooses how many it uses
 
@@ -37,7 +40,8 @@ class StepClassCodec:
     name: str = field(default="classes", init=False)
     kind: SectionKind = field(default="uint8", init=False)
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         if values.ndim != 1 or values.dtype != np.uint8 or (values.size and int(values.max()) > MAX_CLASS):
             raise ValueError(f"{self.name}: classes are uint8 [N] in 0..{MAX_CLASS}, got {values.dtype} {values.shape}")
         return EncodedSection(encode_table(values.astype(np.int64)[:, None]), len(values), {})
@@ -48,7 +52,7 @@ class StepClassCodec:
             raise ArchiveError("bad_header", f"{self.name}: raw length {raw_length} for shape {shape}")
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         values = decode_table(payload, shape[0], 1, self.name)[:, 0]
         if values.size and (int(values.min()) < 0 or int(values.max()) > MAX_CLASS):
             raise ArchiveError("corrupt_section", f"{self.name}: a class lies outside 0..{MAX_CLASS}")

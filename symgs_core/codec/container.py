@@ -13,7 +13,9 @@ Section offsets in the header count from the first byte after the header, so the
 length. The header is compressed since version 2: its JSON repeats keys per section, and zstd takes a 1.5 kB header
 to about 0.7 kB, which is 0.2% of a 30,000-Gaussian archive. Version 3 adds a section, the stored Gaussians' step
 classes (``classes``), which every quantising section reads. Version 4 adds a kind of entropy table (``entropy``:
-every symbol of a table as one column), which older readers could not read. This module only frames and unframes;
+every symbol of a table as one column), which older readers could not read. Version 5 lets a quantising section
+code its symbols less their prediction from neighbours decoded before them (``neighbours``; params ``predict``).
+This module only frames and unframes;
 it knows nothing of Gaussians.
 """
 
@@ -30,9 +32,10 @@ from .errors import ArchiveError
 from .section import zstd_compress, zstd_decompress_exact
 
 MAGIC = b"\x89SYMGS\r\n"
-FORMAT_VERSION = 4
-# 1: the header is plain JSON; 2: a zstd frame of it; 3: and the step classes' section; 4: and flat entropy tables
-READ_VERSIONS = (1, 2, 3, 4)
+FORMAT_VERSION = 5
+# 1: the header is plain JSON; 2: a zstd frame of it; 3: and the step classes' section; 4: and flat entropy tables;
+# 5: and symbols predicted from neighbours
+READ_VERSIONS = (1, 2, 3, 4, 5)
 _PREFIX = struct.Struct("<8sIII")
 PREFIX_SIZE = _PREFIX.size  # 20
 

@@ -9,12 +9,15 @@ differs per attribute and per scene, so the encoder tries each and keeps the sma
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from .errors import ArchiveError
 from .section import EncodedSection, SectionKind, check_params, coding_pool, zstd_compress, zstd_decompress_exact
+
+if TYPE_CHECKING:
+    from .neighbours import Neighbours
 
 # rows: as stored, [N, C]; columns: [C, N]; bytes: byte planes of the row-major values [W, N*C];
 # column-bytes: byte planes of each column [W, C, N] (W bytes per value).
@@ -73,7 +76,8 @@ class FloatZstd:
         """One name per stored precision, so a name alone tells a reader how to decode."""
         return f"f{np.dtype(self.dtype).itemsize * 8}-zstd"
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         if values.dtype != np.float32:
             raise ValueError(f"{self.name} encodes float32 attributes, got {values.dtype}")
         if values.ndim < 1:
@@ -105,7 +109,7 @@ class FloatZstd:
             )
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         raw = zstd_decompress_exact(payload, raw_length, self.name)
         n = shape[0]
         c = int(np.prod(shape[1:], dtype=np.int64))

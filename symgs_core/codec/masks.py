@@ -14,12 +14,15 @@ Level 19 saved nothing on 1M-row matrices and took 8x longer.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import ArchiveError
 from .section import EncodedSection, SectionKind, check_params, zstd_compress, zstd_decompress_exact
+
+if TYPE_CHECKING:
+    from .neighbours import Neighbours
 
 PACKED, RUNS = 0, 1
 VARINT_MAX_BYTES = 5
@@ -183,7 +186,8 @@ class MaskZstd:
     name: str = field(default="mask-zstd", init=False)
     kind: SectionKind = field(default="bool", init=False)
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         raw = encode_masks(values, self.level)
         return EncodedSection(zstd_compress(raw, self.level), len(raw), {})
 
@@ -200,7 +204,7 @@ class MaskZstd:
             )
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n, levels = shape
         return decode_masks(zstd_decompress_exact(payload, raw_length, self.name), n, levels)
 

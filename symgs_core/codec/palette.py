@@ -21,7 +21,7 @@ import weakref
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -43,6 +43,9 @@ from .quantize import (
     check_bands,
 )
 from .section import EncodedSection, Estimate, SectionKind, join_parts, split_all, split_parts
+
+if TYPE_CHECKING:
+    from .neighbours import Neighbours
 
 MAX_PALETTE = 1 << 20
 FIT_ROWS = 1 << 16  # k-means fits a random subsample of at most this many rows, then assigns every row once
@@ -463,7 +466,8 @@ class ShPaletteCodec:
         order = min(costs, key=lambda name: costs[name])
         return costs[order] + entries, order, [mixed < plain for plain, mixed in bands]
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         layout = self._layout(values)
         degree = SH_DEGREES[values.shape[1]]
         _, order, mixed = self._plan(layout, degree)
@@ -511,7 +515,7 @@ class ShPaletteCodec:
         return {"sh_index": sum(parts[:head])} | bands
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n, k, _ = shape
         size, degree = params["size"], len(params["steps"])
         parts = split_all(payload, self.name)

@@ -17,6 +17,8 @@ codec's own grid inside each level group), which is what makes position gaps and
     SH DC       q = round((dc - origin) / step) per channel, stored as (G, R - G, B - G) when that codes smaller
 Log-scales, opacity and DC colour that already lie on a uniform grid (``native_grid``: scenes decoded from 8-bit
 formats) are quantised on that grid, exactly, or on whole multiples of its step when the step asked for is coarser.
+Given the neighbours a reader finds by the decoded positions (``neighbours``), the same three sections code their
+symbols less their prediction from them where that is smaller (params ``predict``: how many neighbours, 0 none).
     SH rest     one step per band; a Gaussian's degree is the highest band with a non-zero symbol, stored as its own
                 column, and only the bands up to it are stored: bands dropped by ``prune.reduce_sh`` cost nothing;
                 each band's channels decorrelated as for DC where that codes smaller (measured: 6-14% of SH bytes
@@ -37,6 +39,7 @@ from .classes import decode_groups, encode_groups, groups_bits, multipliers
 from .entropy import CODING_LEVEL, ESTIMATE_LEVEL, PARALLEL_SYMBOLS, decode_table, encode_table, table_bits
 from .errors import ArchiveError
 from .morton import codes_bits, decode_codes, deinterleave, encode_codes, fits, interleave
+from .neighbours import COUNTS, Neighbours, check_count
 from .section import MAX_MAGNITUDE, EncodedSection, Estimate, SectionKind, coding_pool, join_parts, split_parts
 
 SQRT1_2 = math.sqrt(0.5)
@@ -241,6 +244,42 @@ def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, level: int = ESTIMA
     return min(coding_pool().map(bits, both) if q.size >= PARALLEL_SYMBOLS else map(bits, both))
 
 
+def _smallest(options: list[tuple[dict[str, Any], np.ndarray]],
+              classes: np.ndarray | None) -> tuple[bytes, dict[str, Any]]:  # fmt: skip
+    """The smallest coding of symbol rows [N, ...] among ``options`` (each with the params that undo its transform),
+    a table per class (``_table``)."""
+    best: tuple[bytes, dict[str, Any]] | None = None
+    for params, q in options:
+        payload = encode_groups(q, classes, lambda r: encode_table(_table(r)))
+        if best is None or len(payload) < len(best[0]):
+            best = (payload, params)
+    assert best is not None
+    return best
+
+
+def _predictions(q: np.ndarray, neighbours: Neighbours | None) -> list[tuple[dict[str, Any], np.ndarray]]:
+    """Symbol rows ``q`` [N, C] as they are, and less their predictions from the neighbours an encoder tries."""
+    plain: list[tuple[dict[str, Any], np.ndarray]] = [({"predict": 0}, q)]
+    return plain if neighbours is None else plain + [({"predict": c}, neighbours.residuals(q, c)) for c in COUNTS]
+
+
+def _unpredicted(q: np.ndarray, params: dict[str, Any], neighbours: Neighbours | None, codec: str) -> np.ndarray:
+    """Inverse of ``_predictions``' transform named by ``params`` (absent in archives before format version 5)."""
+    count = params.get("predict", 0)
+    if not count:
+        return q
+    if neighbours is None:
+        raise ArchiveError("bad_header", f"{codec}: symbols predicted from neighbours, but no positions to find them")
+    return neighbours.restore(q, count, MAX_LEVELS, codec)
+
+
+def _predict_keys(params: dict[str, Any], keys: set[str], codec: str) -> None:
+    """``_keys`` with ``predict`` optional, and checked where present."""
+    _keys(params, keys | ({"predict"} if "predict" in params else set()), codec)
+    if "predict" in params:
+        check_count(params["predict"], codec)
+
+
 def _both_ways(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The symbol rows ``q`` as they are and decorrelated."""
     return q, _decorrelate(q)
@@ -291,7 +330,8 @@ class PositionCodec:
         (``order.coding_order`` sorts by them)."""
         return self._quantise(values, classes)[0]
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         q, origin, step = self._quantise(values, classes)
         payload, morton = _grid_payload(q, classes), False
         if fits(q):
@@ -321,7 +361,7 @@ class PositionCodec:
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n = shape[0]
         if params.get("morton"):
             q = decode_groups(payload, classes, n, lambda part, m: deinterleave(decode_codes(part, m, self.name)),
@@ -355,7 +395,8 @@ class RotationCodec:
         steps = self.step * multipliers(classes, len(q))[:, None]
         return np.concatenate([largest[:, None], _grid(others, 0.0, steps, self.name)], axis=1)
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         payload = _grid_payload(self._table(values, classes), classes)
         return EncodedSection(payload, _raw_length(values.shape), {"step": float(self.step)})
 
@@ -370,7 +411,7 @@ class RotationCodec:
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n = shape[0]
         table = decode_groups(payload, classes, n, _read(self.name, 4), self.name)
         largest = table[:, 0]
@@ -410,24 +451,27 @@ class ScalarGridCodec:
         steps = step * multipliers(classes, len(x))[:, None]
         return _grid(x, origin, steps, self.name), origin, step, steps
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         q, origin, step, _ = self._quantise(values, classes)
-        return EncodedSection(_grid_payload(q, classes), _raw_length(values.shape), {"origin": origin, "step": step})
+        payload, predict = _smallest(_predictions(q, neighbours), classes)
+        return EncodedSection(payload, _raw_length(values.shape), {"origin": origin, "step": step} | predict)
 
     def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
         q, origin, _, steps = self._quantise(values, classes)
         return Estimate(_grid_bits(q, classes), _on_grid(q, origin, steps).reshape(values.shape))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"origin", "step"}, self.name)
+        _predict_keys(params, {"origin", "step"}, self.name)
         _step(params, self.name)
         _origin(params.get("origin"), self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n, c = shape[0], int(np.prod(shape[1:], dtype=np.int64))
-        q = decode_groups(payload, classes, n, _read(self.name, c), self.name)
+        q = _unpredicted(decode_groups(payload, classes, n, _read(self.name, c), self.name), params, neighbours,
+                         self.name)  # fmt: skip
         return _on_grid(q, params["origin"], params["step"] * multipliers(classes, n)[:, None]).reshape(shape)
 
 
@@ -451,24 +495,27 @@ class OpacityCodec:
         steps = step * multipliers(classes, len(alpha))
         return _grid(alpha[:, None], 0.0, steps[:, None], self.name), step, steps
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         q, step, _ = self._quantise(values, classes)
-        return EncodedSection(_grid_payload(q, classes), _raw_length(values.shape), {"step": step})
+        payload, predict = _smallest(_predictions(q, neighbours), classes)
+        return EncodedSection(payload, _raw_length(values.shape), {"step": step} | predict)
 
     def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
         q, _, steps = self._quantise(values, classes)
         return Estimate(_grid_bits(q, classes), _logits(q[:, 0], steps))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"step"}, self.name)
+        _predict_keys(params, {"step"}, self.name)
         if not 0 < _step(params, self.name) <= 1:
             raise ArchiveError("bad_header", f"{self.name}: step {params['step']} outside (0, 1]")
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n = shape[0]
-        q = decode_groups(payload, classes, n, _read(self.name, 1), self.name)[:, 0]
+        q = _unpredicted(decode_groups(payload, classes, n, _read(self.name, 1), self.name), params, neighbours,
+                         self.name)[:, 0]  # fmt: skip
         return _logits(q, params["step"] * multipliers(classes, n))
 
 
@@ -494,27 +541,30 @@ class ShDcCodec:
         steps = step * multipliers(classes, len(x))[:, None]
         return _grid(x, origin, steps, self.name), origin, step, steps
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         q, origin, step, _ = self._quantise(values, classes)
-        payload, mixed = _smaller(q, classes)
-        params = {"origin": origin, "step": step, "decorrelate": mixed}
-        return EncodedSection(payload, _raw_length(values.shape), params)
+        options = [({"decorrelate": mixed} | predict, rows) for mixed, way in zip((False, True), _both_ways(q))
+                   for predict, rows in _predictions(way, neighbours)]  # fmt: skip
+        payload, params = _smallest(options, classes)
+        return EncodedSection(payload, _raw_length(values.shape), {"origin": origin, "step": step} | params)
 
     def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
         q, origin, _, steps = self._quantise(values, classes)
         return Estimate(_smaller_bits(q, classes), _on_grid(q, origin, steps))
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
-        _keys(params, {"origin", "step", "decorrelate"}, self.name)
+        _predict_keys(params, {"origin", "step", "decorrelate"}, self.name)
         _step(params, self.name)
         _origin(params.get("origin"), self.name)
         _flag(params, "decorrelate", self.name)
         _check_raw(self.name, shape, raw_length)
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n = shape[0]
         q = decode_groups(payload, classes, n, _read(self.name, 3), self.name)
+        q = _unpredicted(q, params, neighbours, self.name)
         q = _correlate(q) if params["decorrelate"] else q
         return _on_grid(q, params["origin"], params["step"] * multipliers(classes, n)[:, None])
 
@@ -573,7 +623,8 @@ class ShRestCodec:
             decoded[:, rows, :] = _sh_values(band, step, classes)
         return Estimate(bits, decoded)
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         bands, per = self._quantise(values, classes)
         degree = len(bands)
         parts, mixed = [encode_table(per[:, None])], []
@@ -599,7 +650,7 @@ class ShRestCodec:
         return {"sh_degrees": 4 + len(parts[0])} | {f"sh_band_{b}": 4 + len(p) for b, p in enumerate(parts[1:], 1)}
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         n, k, _ = shape
         degree = len(params["steps"])
         parts = split_parts(payload, degree + 1, self.name)

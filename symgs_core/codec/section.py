@@ -15,12 +15,15 @@ import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import zstandard
 
 from .errors import ArchiveError
+
+if TYPE_CHECKING:
+    from .neighbours import Neighbours
 
 SectionKind = Literal["float32", "bool", "uint8"]
 # Every attribute value an archive holds, and every plane offset, lies within +-MAX_MAGNITUDE: then float32 sums and
@@ -66,7 +69,8 @@ class SectionCodec(Protocol):
     @property
     def kind(self) -> SectionKind: ...
 
-    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> EncodedSection:
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
         """``values`` [N, ...] (float32 for attributes, bool for the bit matrix) -> payload; ValueError if unfit."""
         ...
 
@@ -75,7 +79,7 @@ class SectionCodec(Protocol):
         ...
 
     def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
-               classes: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
         """The array of ``shape``; ArchiveError("corrupt_section") when the payload disagrees. Runs after ``check``."""
         ...
 

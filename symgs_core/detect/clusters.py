@@ -10,9 +10,9 @@ import torch
 from numba import prange
 from torch import Tensor
 
+from ..compiled import compiled, compiled_parallel
 from ..scene import GaussianScene
 from ..sh import C0
-from .compiled import compiled, compiled_parallel
 
 
 @dataclass(frozen=True)

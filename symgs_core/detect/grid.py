@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .compiled import compiled
+from ..compiled import compiled
 
 _SEAM_CELLS = 3  # width of the band past the equator, in cells; above the smoothing and refinement windows
 

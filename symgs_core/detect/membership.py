@@ -22,10 +22,10 @@ from numba import prange
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ..compiled import compiled, compiled_parallel
 from ..devices import HOST
 from ..zorder import AXIS_BITS, interleave
 from .clusters import Attributes
-from .compiled import compiled, compiled_parallel
 from .pairs import Axes
 from .refine import fit_reflection
 

@@ -10,9 +10,9 @@ import torch
 from numba import prange
 from torch import Tensor
 
+from ..compiled import compiled, compiled_parallel
 from ..scene import GaussianScene
 from .clusters import Clusters
-from .compiled import compiled, compiled_parallel
 
 
 def _ranges(starts: Tensor, lengths: Tensor) -> Tensor:

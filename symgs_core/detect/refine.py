@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .compiled import compiled
+from ..compiled import compiled
 
 
 def refine_from_pairs(

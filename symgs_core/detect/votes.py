@@ -9,7 +9,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from .compiled import compiled, compiled_parallel
+from ..compiled import compiled, compiled_parallel
 from .grid import GridSpec
 from .pairs import Axes
 

@@ -1,4 +1,4 @@
-"""Compiling the detection kernels (numba)."""
+"""Compiling numba kernels: the detection's and the codec's neighbour predictions."""
 
 from __future__ import annotations
 
