@@ -167,7 +167,7 @@ def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lo
         if name == "means":  # what a reader finds its neighbours by: the positions as it decodes them
             shape = arrays[name].shape
             points = codecs[name].decode(coded.payload, shape, coded.params, coded.raw_length, classes=classes)
-            neighbours = Neighbours.of(points, classes)
+            neighbours = Neighbours(points, classes)
         table.append(
             {
                 "name": name,
@@ -432,8 +432,7 @@ def decode_archive(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> Arc
     classes = _decode_section(data, by_name["classes"]) if "classes" in by_name else None
     given = classes if classes is not None and classes.any() else None
     arrays = {"means": _decode_section(data, by_name["means"], given)}
-    predicted = any(by_name[name].params.get("predict") for name in ATTRIBUTE_NAMES)
-    neighbours = Neighbours.of(arrays["means"], given) if predicted else None
+    neighbours = Neighbours(arrays["means"], given)
     arrays |= {name: _decode_section(data, by_name[name], given, neighbours) for name in ATTRIBUTE_NAMES[1:]}
     stored = GaussianScene(**{k: torch.from_numpy(v) for k, v in arrays.items()})
     return ArchiveContents(stored, planes, bits, header["meta"], None if classes is None else torch.from_numpy(classes))

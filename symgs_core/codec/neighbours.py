@@ -21,6 +21,7 @@ and the sums are rounded the same way on every IEEE machine; equal distances go 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import prange
@@ -62,51 +63,60 @@ def _nearest_before(points: np.ndarray, window: int, most: int) -> np.ndarray:  
 
 
 @compiled
-def _restore(residuals: np.ndarray, index: np.ndarray, count: int) -> np.ndarray:  # pragma: no cover - numba
-    """Symbols [N, C] from ``residuals`` [N, C], each row's prediction from rows before it (``index``)."""
-    n, c = residuals.shape
-    out = np.empty_like(residuals)
-    for i in range(n):
-        used = 0
-        for k in range(count):
-            if index[i, k] >= 0:
-                used += 1
-        for col in range(c):
-            total = 0
-            for k in range(used):
-                total += out[index[i, k], col]
-            out[i, col] = residuals[i, col] + ((total + used // 2) // used if used else 0)
+def _prediction(symbols: np.ndarray, index: np.ndarray, i: int, col: int, count: int) -> int:  # pragma: no cover
+    """Row ``i``'s prediction in column ``col``: the mean of ``symbols`` at its first ``count`` neighbours (those
+    it has), rounded half up; 0 without any."""
+    used, total = 0, 0
+    for k in range(count):
+        if index[i, k] >= 0:
+            used += 1
+            total += symbols[index[i, k], col]
+    return (total + used // 2) // used if used else 0
+
+
+@compiled_parallel
+def _residuals(q: np.ndarray, index: np.ndarray, count: int) -> np.ndarray:  # pragma: no cover - numba
+    out = np.empty_like(q)
+    for i in prange(q.shape[0]):
+        for col in range(q.shape[1]):
+            out[i, col] = q[i, col] - _prediction(q, index, i, col, count)
     return out
 
 
-@dataclass(frozen=True)
+@compiled
+def _restore(residuals: np.ndarray, index: np.ndarray, count: int) -> np.ndarray:  # pragma: no cover - numba
+    """Inverse of ``_residuals``: row by row, each from rows before it."""
+    out = np.empty_like(residuals)
+    for i in range(residuals.shape[0]):
+        for col in range(residuals.shape[1]):
+            out[i, col] = residuals[i, col] + _prediction(out, index, i, col, count)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
 class Neighbours:
-    """Each stored Gaussian's nearest ``MOST`` among the ``WINDOW`` before it in its class, as indices [N, MOST]
-    into the whole stored set in coding order (nearest first; -1 where there are fewer)."""
+    """The neighbours a reader finds by the decoded positions ``points`` [N, 3] float32 of the stored set in coding
+    order and its step classes [N] (None: one class); searched on first use, so sections that predict nothing cost
+    no search."""
 
-    index: np.ndarray
+    points: np.ndarray
+    classes: np.ndarray | None
 
-    @classmethod
-    def of(cls, points: np.ndarray, classes: np.ndarray | None) -> Neighbours:
-        """From the decoded positions ``points`` [N, 3] float32 and step classes [N] (None: one class)."""
-        index = np.full((len(points), MOST), -1, dtype=np.int64)
-        coords = points.astype(np.float64)
-        for rows in groups(classes, len(points)):
+    @cached_property
+    def index(self) -> np.ndarray:
+        """[N, MOST] int64: each Gaussian's nearest ``MOST`` among the ``WINDOW`` before it in its class, as indices
+        into the whole set (nearest first; -1 where there are fewer)."""
+        index = np.full((len(self.points), MOST), -1, dtype=np.int64)
+        coords = self.points.astype(np.float64)
+        for rows in groups(self.classes, len(self.points)):
             if len(rows):
                 local = _nearest_before(np.ascontiguousarray(coords[rows]), WINDOW, MOST)
                 index[rows] = np.where(local >= 0, rows[np.maximum(local, 0)], -1)
-        return cls(index)
-
-    def _prediction(self, q: np.ndarray, count: int) -> np.ndarray:
-        index = self.index[:, :count]
-        valid = index >= 0
-        used = valid.sum(axis=1)[:, None]
-        total = np.where(valid[..., None], q[np.maximum(index, 0)], 0).sum(axis=1)
-        return np.where(used > 0, (total + used // 2) // np.maximum(used, 1), 0)
+        return index
 
     def residuals(self, q: np.ndarray, count: int) -> np.ndarray:
         """Symbols ``q`` [N, C] int64 less their prediction from the first ``count`` neighbours."""
-        return q - self._prediction(q, count)
+        return _residuals(np.ascontiguousarray(q, dtype=np.int64), self.index, count)
 
     def restore(self, residuals: np.ndarray, count: int, limit: int, what: str) -> np.ndarray:
         """Inverse of ``residuals``; ArchiveError if a symbol lands ``limit`` cells or more from zero (residuals of
@@ -117,8 +127,7 @@ class Neighbours:
         return q
 
 
-def check_count(count: object, codec: str) -> int:
+def check_count(count: object, codec: str) -> None:
     """ArchiveError unless ``count`` (params ``predict``) is an integer in 0..MOST."""
     if type(count) is not int or not 0 <= count <= MOST:
         raise ArchiveError("bad_header", f"{codec}: parameter predict={count!r:.40} must be an integer in 0..{MOST}")
-    return count

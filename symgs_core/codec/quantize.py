@@ -229,9 +229,10 @@ def _table(rows: np.ndarray) -> np.ndarray:
 
 def _smaller(q: np.ndarray, classes: np.ndarray | None) -> tuple[bytes, bool]:
     """The smaller coding of RGB symbol rows ``q`` [N, ..., 3], a table per class (``_table``): as they are, or
-    decorrelated. One after the other: ``encode_table`` spreads a large table's streams over the cores."""
-    plain, mixed = (encode_groups(rows, classes, lambda r: encode_table(_table(r))) for rows in _both_ways(q))
-    return (mixed, True) if len(mixed) < len(plain) else (plain, False)
+    decorrelated (``_smallest``), and whether decorrelated."""
+    payload, params = _smallest([({"decorrelate": mixed}, way) for mixed, way in zip((False, True), _both_ways(q))],
+                                classes)  # fmt: skip
+    return payload, params["decorrelate"]
 
 
 def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, level: int = ESTIMATE_LEVEL) -> float:

@@ -39,7 +39,7 @@ def test_neighbours_are_the_nearest_before_in_each_class(with_classes: bool) -> 
     points = rng.normal(size=(400, 3)).astype(np.float32)
     points[50:60] = points[40]  # equal distances: the one nearer in order wins
     classes = rng.integers(0, 3, 400).astype(np.uint8) if with_classes else None
-    found = Neighbours.of(points, classes).index
+    found = Neighbours(points, classes).index
     np.testing.assert_array_equal(found, _oracle(points, classes))
     assert (found < np.arange(400)[:, None]).all()  # only rows a reader has decoded
 
@@ -48,7 +48,7 @@ def test_neighbours_are_the_nearest_before_in_each_class(with_classes: bool) -> 
 def test_residuals_restore_exactly(count: int) -> None:
     rng = np.random.default_rng(count)
     points = rng.uniform(size=(300, 3)).astype(np.float32)
-    neighbours = Neighbours.of(points, rng.integers(0, 2, 300).astype(np.uint8))
+    neighbours = Neighbours(points, rng.integers(0, 2, 300).astype(np.uint8))
     q = rng.integers(-1000, 1000, size=(300, 3))
     residuals = neighbours.residuals(q, count)
     np.testing.assert_array_equal(neighbours.restore(residuals, count, MAX_LEVELS, "test"), q)
@@ -76,7 +76,7 @@ def test_a_predicted_section_decodes_to_the_same_values_in_fewer_bytes(codec, sh
     points, field = _smooth(3000, seed=2)
     values = np.ascontiguousarray(field[:, : (shape[0] if shape else 1)].reshape(3000, *shape))
     classes = (np.arange(3000) * 2 // 3000).astype(np.uint8)  # two classes, in runs as the coding order leaves them
-    neighbours = Neighbours.of(points, classes)
+    neighbours = Neighbours(points, classes)
     plain = codec.encode(values, classes=classes)
     predicted = codec.encode(values, classes=classes, neighbours=neighbours)
     assert plain.params["predict"] == 0 and predicted.params["predict"] > 0
@@ -92,7 +92,7 @@ def test_values_unlike_their_neighbours_are_not_predicted() -> None:
     rng = np.random.default_rng(3)
     points = rng.uniform(size=(2000, 3)).astype(np.float32)
     values = rng.normal(size=(2000, 3)).astype(np.float32)
-    coded = ScalarGridCodec(0.05).encode(values, neighbours=Neighbours.of(points, None))
+    coded = ScalarGridCodec(0.05).encode(values, neighbours=Neighbours(points, None))
     assert coded.params["predict"] == 0
 
 
@@ -175,7 +175,7 @@ def test_impossible_prediction_counts_are_refused_before_decoding(count: object)
 
 def test_a_predicted_section_without_positions_or_with_runaway_residuals_is_refused() -> None:
     points, field = _smooth(500, seed=5)
-    neighbours = Neighbours.of(points, None)
+    neighbours = Neighbours(points, None)
     codec = ScalarGridCodec(0.02)
     coded = codec.encode(field, neighbours=neighbours)
     assert coded.params["predict"] > 0
