@@ -152,3 +152,91 @@ def test_a_membership_that_cannot_pay_is_rendered_only_until_it_is_known(monkeyp
     flat = Rate(lambda before, after: 0.5)  # pays from any start: every view is rendered
     (paying,) = levels.plan_attempts(state, math.inf, [member], views, floor=0.0, rate=flat, best_bytes=1000)
     assert not paying.bounded and paying.psnr_before == pytest.approx(true)
+
+
+def _half_mirror(scene: GaussianScene) -> tuple[LevelState, "levels.Membership", "levels.Membership"]:
+    """The plain state of ``scene`` and two memberships of a plane it is not symmetric about: one that drops its whole
+    right half, one that drops a third of it."""
+    from symgs_core.pipeline import levels
+
+    centre = float(scene.means[:, 2].median())
+    left = torch.nonzero(scene.means[:, 2] < centre).squeeze(1)
+    right = torch.nonzero(scene.means[:, 2] >= centre).squeeze(1)
+    plane = Plane((0.0, 0.0, 1.0), centre)
+    whole = levels.Membership(plane, left, right, 1.0, 1.0, None)
+    third = levels.Membership(plane, left, right[: right.numel() // 3], 1.0, 0.6, 0.3)
+    return LevelState.plain(scene), whole, third
+
+
+def test_against_photographs_every_membership_is_probed_the_largest_first() -> None:
+    """No fine-tune gain is assumed against photographs: a membership that starts far under the floor, which a rate
+    model would skip against the upload's renders, is tried, from its exact start, the one dropping most first."""
+    from symgs_core.pipeline import levels
+    from symgs_core.pipeline.encode import Rate
+    from symgs_core.views import evaluate
+
+    scene = synthetic_scene("global", n=400, seed=1, sh_degree=1).scene
+    views = self_supervised_views(scene, train=2, fit=2, eval=1, resolution=32, eval_resolution=32,
+                                  background=torch.zeros(3))  # fmt: skip
+    state, whole, third = _half_mirror(scene)
+    steep = Rate(lambda before, after: 10.0)  # no start pays by the model
+    floor = 80.0
+    uploads = levels.plan_attempts(state, 90.0, [third, whole], views, floor=floor, rate=steep, best_bytes=1000)
+    assert not any(a.pays(floor, 1000) for a in uploads)
+    probed = levels.plan_attempts(state, 90.0, [third, whole], views, floor=floor, rate=steep, best_bytes=1000,
+                                  photographs=True)  # fmt: skip
+    assert [a.membership for a in probed] == [whole, third]
+    for attempt in probed:
+        assert attempt.probed and attempt.pays(floor, 1000) and not attempt.bounded and attempt.predicted is None
+        start = apply_mirror(state, attempt.membership.plane, attempt.membership.left, attempt.membership.right)
+        true = evaluate(start.expanded(), views.fit, views.background, with_ssim=False).worst
+        assert attempt.psnr_before == pytest.approx(true) and attempt.psnr_before < floor - levels.TUNE_GAIN
+
+
+@pytest.mark.parametrize(
+    ("reached", "gained", "left", "pays"),
+    [
+        (30.0, 1.0, 2, True),  # reaches 32, the model's ratio 0.5 there: 800 * 0.5 < 1000
+        (30.0, 0.5, 2, False),  # reaches 31: under the floor
+        (30.0, -2.0, 3, False),  # a stretch that lost counts as none
+        (31.5, 0.0, 0, True),  # on the floor, nothing left to run
+        (33.0, 1.0, 1, False),  # 34: the model's ratio 1.5 there
+    ],
+)
+def test_the_pace_of_a_fine_tune(reached: float, gained: float, left: int, pays: bool) -> None:
+    from symgs_core.pipeline.encode import Rate
+    from symgs_core.pipeline.levels import Pace
+
+    rate = Rate(lambda before, after: 1.5 if after >= 34.0 else 0.5)
+    assert Pace(31.5, rate, 30.0, 800.0, 1000)(reached, gained, left) is pays
+    assert Pace(31.5, None, 30.0, 800.0, 1000)(reached, gained, left) is (reached + max(gained, 0) * left >= 31.5)
+
+
+@pytest.mark.parametrize("reachable", [True, False])
+def test_a_probed_fine_tune_stops_once_its_pace_cannot_pay(reachable: bool) -> None:
+    """A fine-tune with a ``Pace`` runs on only while the pace says it may pay, and says whether it was stopped."""
+    from symgs_core.config import CompressConfig
+    from symgs_core.pipeline import levels
+    from symgs_core.pipeline.job import Reporter
+
+    scene = synthetic_scene("global", n=300, seed=3).scene
+    views = self_supervised_views(scene, train=2, fit=1, eval=1, resolution=24, eval_resolution=24,
+                                  background=torch.zeros(3))  # fmt: skip
+    state, whole, _ = _half_mirror(scene)
+    candidate = apply_mirror(state, whole.plane, whole.left, whole.right)
+    calls: list[tuple[float, float, int]] = []
+
+    class Judged(levels.Pace):
+        def __call__(self, reached: float, gained: float, stretches_left: int) -> bool:
+            calls.append((reached, gained, stretches_left))
+            return reachable
+
+    pace = Judged(-math.inf, None, 0.0, 0.0, 0)
+    config = CompressConfig.for_preset(iterations=40)
+    _, _, run, cut = levels.tune(state, candidate, whole, views, level=0, config=config, extent=1.0, spacing=0.05,
+                                 steps=None, report=Reporter(None, None), pace=pace)  # fmt: skip
+    assert calls and calls[0][2] == 3  # four stretches of 10: three left after the first
+    if reachable:
+        assert not cut and run == 10 * len(calls) + (10 if run == 40 else 0)
+    else:
+        assert cut and run == 10 and len(calls) == 1
