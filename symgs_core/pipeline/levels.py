@@ -56,7 +56,7 @@ HALO_SPACINGS = 3.0
 # Against renders of the input, a membership that, as it starts, costs the codec less than this share of its bytes (by
 # the rate model) is judged without a fine-tune: bringing it all the way back could save no more, and on near-exact
 # twins a fine-tune only burns minutes before it is rolled back. Against photographs a fine-tune may gain beyond the
-# input itself, so there every membership that may pay is fine-tuned.
+# input itself, so there every membership is fine-tuned, for as long as its pace says it may pay (``Pace``).
 SETTLED_COST = 0.005
 # A mirror whose reflection would stand in for at least this share of the scene, found but not kept against the
 # upload's own renders, is worth telling the user about: their photographs might make it pay.

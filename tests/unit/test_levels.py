@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from symgs_core.codec import decode_archive, expand_archive
 from symgs_core.codec.steps import QuantSteps
 from symgs_core.mirror import Plane, reflect
+from symgs_core.pipeline import levels
 from symgs_core.pipeline.encode import write_archive
 from symgs_core.pipeline.levels import apply_mirror, consistent_bits
 from symgs_core.pipeline.optimize import fake_quantized, halo, optimize_level
@@ -124,7 +125,6 @@ def test_straight_through_rounding() -> None:
 def test_a_membership_that_cannot_pay_is_rendered_only_until_it_is_known(monkeypatch) -> None:  # noqa: ANN001
     """With a rate model, a membership whose archive is predicted no smaller than the best even from the highest
     start the views rendered so far allow is not rendered further: its start is reported as that bound."""
-    from symgs_core.pipeline import levels
     from symgs_core.pipeline.encode import Rate
     from symgs_core.views import BOUND_BATCH, evaluate
 
@@ -154,11 +154,9 @@ def test_a_membership_that_cannot_pay_is_rendered_only_until_it_is_known(monkeyp
     assert not paying.bounded and paying.psnr_before == pytest.approx(true)
 
 
-def _half_mirror(scene: GaussianScene) -> tuple[LevelState, "levels.Membership", "levels.Membership"]:
+def _half_mirror(scene: GaussianScene) -> tuple[LevelState, levels.Membership, levels.Membership]:
     """The plain state of ``scene`` and two memberships of a plane it is not symmetric about: one that drops its whole
     right half, one that drops a third of it."""
-    from symgs_core.pipeline import levels
-
     centre = float(scene.means[:, 2].median())
     left = torch.nonzero(scene.means[:, 2] < centre).squeeze(1)
     right = torch.nonzero(scene.means[:, 2] >= centre).squeeze(1)
@@ -171,7 +169,6 @@ def _half_mirror(scene: GaussianScene) -> tuple[LevelState, "levels.Membership",
 def test_against_photographs_every_membership_is_probed_the_largest_first() -> None:
     """No fine-tune gain is assumed against photographs: a membership that starts far under the floor, which a rate
     model would skip against the upload's renders, is tried, from its exact start, the one dropping most first."""
-    from symgs_core.pipeline import levels
     from symgs_core.pipeline.encode import Rate
     from symgs_core.views import evaluate
 
@@ -216,7 +213,6 @@ def test_the_pace_of_a_fine_tune(reached: float, gained: float, left: int, pays:
 def test_a_probed_fine_tune_stops_once_its_pace_cannot_pay(reachable: bool) -> None:
     """A fine-tune with a ``Pace`` runs on only while the pace says it may pay, and says whether it was stopped."""
     from symgs_core.config import CompressConfig
-    from symgs_core.pipeline import levels
     from symgs_core.pipeline.job import Reporter
 
     scene = synthetic_scene("global", n=300, seed=3).scene
