@@ -247,11 +247,11 @@ def _smaller_bits(q: np.ndarray, classes: np.ndarray | None, level: int = ESTIMA
 
 def _smallest(options: list[tuple[dict[str, Any], np.ndarray]],
               classes: np.ndarray | None) -> tuple[bytes, dict[str, Any]]:  # fmt: skip
-    """The smallest coding of symbol rows [N, ...] among ``options`` (each with the params that undo its transform),
-    a table per class (``_table``)."""
+    """The smallest coding (``_grid_payload``) of symbol rows [N, ...] among ``options`` (each with the params that
+    undo its transform)."""
     best: tuple[bytes, dict[str, Any]] | None = None
     for params, q in options:
-        payload = encode_groups(q, classes, lambda r: encode_table(_table(r)))
+        payload = _grid_payload(q, classes)
         if best is None or len(payload) < len(best[0]):
             best = (payload, params)
     assert best is not None
@@ -296,7 +296,8 @@ def _grid_bits(q: np.ndarray, classes: np.ndarray | None) -> float:
 
 
 def _grid_payload(q: np.ndarray, classes: np.ndarray | None) -> bytes:
-    return encode_groups(q, classes, encode_table)
+    """Symbol rows ``q`` [N, ...] coded, a table per class (``_table``)."""
+    return encode_groups(q, classes, lambda rows: encode_table(_table(rows)))
 
 
 def _flag(params: dict[str, Any], key: str, codec: str) -> None:

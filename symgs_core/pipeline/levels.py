@@ -277,6 +277,7 @@ def tune(
     membership: Membership,
     views: ViewSet,
     *,
+    start: float,
     level: int,
     config: CompressConfig,
     extent: float,
@@ -287,10 +288,10 @@ def tune(
 ) -> tuple[LevelState, float, int, bool]:
     """Fine-tune what ``membership`` changed in ``candidate`` (its left side and the neighbours of both sides, and
     the new plane) in stretches while they gain and, with ``pace``, while it says the level may still pay; returns
-    the tuned state, its fitting PSNR, the steps run and whether ``pace`` stopped it."""
+    the tuned state, its fitting PSNR, the steps run and whether ``pace`` stopped it. ``start``: ``candidate``'s
+    fitting PSNR, as the plan rendered it (``Attempt.psnr_before``, exact for every membership it lets run)."""
     region = torch.cat([membership.left, membership.right])
     trainable = halo(state.stored, region, candidate.stored, radius=HALO_SPACINGS * spacing)
-    start = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
     check_every = max(config.iterations // 4, 1)
     best = {"psnr": start, "stretches": math.ceil(config.iterations / check_every), "cut": False}
 
@@ -423,9 +424,9 @@ def run_levels(
                 if attempt.probed:
                     share = len(candidate.stored) / max(len(state.stored), 1)
                     pace = Pace(floor, search.rate, psnr, best_bytes * share, best_bytes)
-                tuned, psnr_after, run, cut = tune(state, candidate, membership, views, level=level, config=config,
-                                                   extent=search.extent, spacing=spacing, steps=search.steps,
-                                                   report=report, pace=pace)  # fmt: skip
+                tuned, psnr_after, run, cut = tune(state, candidate, membership, views, start=psnr_before, level=level,
+                                                   config=config, extent=search.extent, spacing=spacing,
+                                                   steps=search.steps, report=report, pace=pace)  # fmt: skip
             report.timed("optimize", time.perf_counter() - t0)
             archive_bytes, judged = None, None
             if skipped:

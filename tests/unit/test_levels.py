@@ -214,6 +214,7 @@ def test_a_probed_fine_tune_stops_once_its_pace_cannot_pay(reachable: bool) -> N
     """A fine-tune with a ``Pace`` runs on only while the pace says it may pay, and says whether it was stopped."""
     from symgs_core.config import CompressConfig
     from symgs_core.pipeline.job import Reporter
+    from symgs_core.views import evaluate
 
     scene = synthetic_scene("global", n=300, seed=3).scene
     views = self_supervised_views(scene, train=2, fit=1, eval=1, resolution=24, eval_resolution=24,
@@ -229,8 +230,9 @@ def test_a_probed_fine_tune_stops_once_its_pace_cannot_pay(reachable: bool) -> N
 
     pace = Judged(-math.inf, None, 0.0, 0.0, 0)
     config = CompressConfig.for_preset(iterations=40)
-    _, _, run, cut = levels.tune(state, candidate, whole, views, level=0, config=config, extent=1.0, spacing=0.05,
-                                 steps=None, report=Reporter(None, None), pace=pace)  # fmt: skip
+    start = evaluate(candidate.expanded(), views.fit, views.background, with_ssim=False).worst
+    _, _, run, cut = levels.tune(state, candidate, whole, views, start=start, level=0, config=config, extent=1.0,
+                                 spacing=0.05, steps=None, report=Reporter(None, None), pace=pace)  # fmt: skip
     assert calls and calls[0][2] == 3  # four stretches of 10: three left after the first
     if reachable:
         assert not cut and run == 10 * len(calls) + (10 if run == 40 else 0)
