@@ -2,7 +2,8 @@
 is not needed).
 
 Images come from ``images/`` or, when absent, the ``images_N`` folder with the smallest N; intrinsics are rescaled
-to the size of the image actually read. Pinhole models (PINHOLE, SIMPLE_PINHOLE) are read as they are; the
+to the size of the image actually read, which must have its camera's aspect ratio, as stored or turned by its EXIF
+orientation (``images.oriented_size``). Pinhole models (PINHOLE, SIMPLE_PINHOLE) are read as they are; the
 distorted ones (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV) are undistorted on load to the pinhole camera COLMAP's
 ``image_undistorter`` gives them (``lens``). Fisheye models (OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
 RADIAL_FISHEYE, THIN_PRISM_FISHEYE) and FOV fail with ``unsupported_camera_model``, unknown ones with
@@ -23,7 +24,7 @@ import torch
 
 from ..cameras import View
 from .errors import DatasetError
-from .images import image_size, load_views
+from .images import load_views, oriented_size
 from .lens import Lens
 from .posed import (
     PosedFrame,
@@ -335,17 +336,11 @@ def colmap_frames(root: str | Path, split: Split = "all", *, images: str | None 
             raise DatasetError("malformed", f"image {image.name!r} leads out of the dataset folder {root.name}/")
         if not path.is_file():
             raise DatasetError("image_missing", f"image {image.name} not found in {folder.name}/")
-        width, height = image_size(path)
-        sx, sy = width / cam.width, height / cam.height
-        if abs(sx - sy) > 0.02 * max(sx, sy):
-            raise DatasetError(
-                "bad_image",
-                f"image {image.name} is {width}x{height} but camera {image.camera_id} is {cam.width}x{cam.height}: "
-                f"the aspect ratios differ",
-            )
+        orientation, width, height = oriented_size(path, cam.width, cam.height, f"camera {image.camera_id}")
         rotation = torch.from_numpy(_quat_to_rotmat(image.qvec)).float()
-        lens = lens.scaled(sx, sy, width, height)
-        frames.append(posed_frame(rotation, torch.tensor(image.tvec, dtype=torch.float32), lens, path, image.name))
+        lens = lens.scaled(width / cam.width, height / cam.height, width, height)
+        frames.append(posed_frame(rotation, torch.tensor(image.tvec, dtype=torch.float32), lens, path, image.name,
+                                  orientation))  # fmt: skip
     return frames
 
 

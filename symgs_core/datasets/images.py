@@ -21,6 +21,11 @@ from .lens import UndistortionMaps, undistort_image, undistortion_maps
 from .posed import Photograph, PosedFrame, composite
 
 _PIXEL_LIMIT: ContextVar[int | None] = ContextVar("pixel_limit", default=None)
+_EXIF_ORIENTATION = 0x0112
+# EXIF orientation -> Pillow's transpose that shows the stored pixels upright (1: as stored)
+_TURNS = {2: "FLIP_LEFT_RIGHT", 3: "ROTATE_180", 4: "FLIP_TOP_BOTTOM", 5: "TRANSPOSE", 6: "ROTATE_270",
+          7: "TRANSVERSE", 8: "ROTATE_90"}  # fmt: skip
+_SWAPS_AXES = (5, 6, 7, 8)
 
 
 @contextmanager
@@ -55,16 +60,46 @@ def _unreadable(path: Path, exc: Exception) -> DatasetError:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """Width and height of the image at ``path``, from its header."""
+    """Width and height of the image at ``path`` as its pixels are stored, from its header."""
+    return _header(path)[:2]
+
+
+def _header(path: Path) -> tuple[int, int, int]:
+    """Width and height as stored, and the EXIF orientation (1 where there is none, or none Pillow knows)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             width, height = im.size
+            orientation = im.getexif().get(_EXIF_ORIENTATION, 1)
     except (OSError, Image.DecompressionBombError) as exc:
         raise _unreadable(path, exc) from None
     _check_pixels(path, width, height)
-    return width, height
+    return width, height, orientation if orientation in _TURNS else 1
+
+
+def oriented_size(path: Path, width: float, height: float, camera: str) -> tuple[int, int, int]:
+    """(orientation, width, height): the EXIF orientation to read the image at ``path`` in, and its size so turned,
+    for a camera of ``width`` x ``height`` pixels; ``bad_image`` when neither the stored image nor the turned one has
+    the camera's aspect ratio (within 2%).
+
+    Phones store a portrait photograph as landscape pixels and an EXIF tag that turns them. Pose tools differ: COLMAP
+    reads the stored pixels (its cameras then have their size), others turn the photograph first (their cameras have
+    the turned size). The image is read the way whose aspect is the camera's: as stored wherever that fits, as
+    COLMAP does; a turn that keeps the aspect (a half turn, a mirror) cannot be told that way and is not applied."""
+    stored_w, stored_h, orientation = _header(path)
+    fits = lambda w, h: abs(w / width - h / height) <= 0.02 * max(w / width, h / height)  # noqa: E731
+    if fits(stored_w, stored_h):
+        return 1, stored_w, stored_h
+    if orientation in _SWAPS_AXES and fits(stored_h, stored_w):
+        return orientation, stored_h, stored_w
+    turned = f" (its EXIF orientation {orientation} turns it to {stored_h}x{stored_w})"
+    turned = turned if orientation in _SWAPS_AXES else ""
+    raise DatasetError(
+        "bad_image",
+        f"image {path.name} is {stored_w}x{stored_h}{turned} but {camera} is {width:g}x{height:g}: the aspect ratios "
+        "differ",
+    )
 
 
 # Grey modes wider than 8 bits and their white: 16-bit PNGs open as I;16 (or I, by Pillow's version), float TIFFs as F.
@@ -77,10 +112,11 @@ def read_premultiplied(path: Path) -> tuple[Tensor, Tensor | None]:
     return colour, alpha
 
 
-def _decode(path: Path, reduce: int) -> tuple[Tensor, Tensor | None, int]:
+def _decode(path: Path, reduce: int, orientation: int = 1) -> tuple[Tensor, Tensor | None, int]:
     """``read_premultiplied``, a JPEG decoded at 1/``reduce`` of its size where libjpeg's DCT scaling allows (1/2,
-    1/4, 1/8: a fraction of the work and memory of the whole decode), other images whole; and the reduction made
-    (pixel corners scale by its inverse; a reduced decode's last pixel may cover only part of a block)."""
+    1/4, 1/8: a fraction of the work and memory of the whole decode), other images whole, then turned as the EXIF
+    ``orientation`` says (``oriented_size``); and the reduction made (pixel corners scale by its inverse; a reduced
+    decode's last pixel may cover only part of a block)."""
     from PIL import Image
 
     try:
@@ -90,12 +126,13 @@ def _decode(path: Path, reduce: int) -> tuple[Tensor, Tensor | None, int]:
             if reduce > 1 and im.format == "JPEG":
                 im.draft("RGB", (im.size[0] // reduce, im.size[1] // reduce))
             made = round(width / im.size[0])
-            if im.mode in _WIDE_GREY:
+            upright = im.transpose(Image.Transpose[_TURNS[orientation]]) if orientation in _TURNS else im
+            if upright.mode in _WIDE_GREY:
                 # Pillow's conversion to RGB clips these at 255, which would read a 16-bit grey photograph as white
-                grey = np.clip(np.asarray(im, dtype=np.float32) / _WIDE_GREY[im.mode], 0.0, 1.0)
+                grey = np.clip(np.asarray(upright, dtype=np.float32) / _WIDE_GREY[upright.mode], 0.0, 1.0)
                 return torch.from_numpy(np.repeat(grey[..., None], 3, axis=-1)), None, made
-            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
-            array = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+            has_alpha = upright.mode in ("RGBA", "LA", "PA") or "transparency" in upright.info
+            array = np.asarray(upright.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
     except (OSError, Image.DecompressionBombError) as exc:
         raise _unreadable(path, exc) from None
     rgb = torch.from_numpy(array[..., :3].copy())
@@ -144,14 +181,14 @@ def read_frame(
     Where the undistorted frame samples outside the photograph (a lens past COLMAP's limits) its pixels are
     transparent."""
     if frame.lens is None:
-        colour, alpha = read_premultiplied(frame.path)
+        colour, alpha, _ = _decode(frame.path, 1, frame.orientation)
         # Resized before compositing, so the same pixels can be laid on any background; premultiplied, that gives
         # what resizing the composite would.
         alpha = None if alpha is None else resize_image(alpha, width, height)
         return resize_image(colour, width, height), alpha
     pinhole = frame.camera
     fits = lambda r: round(pinhole.width / r) >= width and round(pinhole.height / r) >= height  # noqa: E731
-    colour, alpha, reduce = _decode(frame.path, next((r for r in (8, 4, 2) if fits(r)), 1))
+    colour, alpha, reduce = _decode(frame.path, next((r for r in (8, 4, 2) if fits(r)), 1), frame.orientation)
     lens = frame.lens.scaled(1.0 / reduce, 1.0 / reduce, colour.shape[1], colour.shape[0])
     middle = pinhole.resized(round(pinhole.width / reduce), round(pinhole.height / reduce))
     key = (lens, middle.fx, middle.fy, middle.cx, middle.cy, middle.width, middle.height)

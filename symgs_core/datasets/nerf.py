@@ -10,8 +10,9 @@ models (``OPENCV_FISHEYE``, ``EQUIRECTANGULAR``, instant-ngp's ``is_fisheye``) f
 ``unsupported_camera_model``. nerfstudio trains (and by default exports its splats) in a frame of its own, turned,
 moved and scaled from the poses' frame; with its ``dataparser_transforms.json`` (``transform`` [3, 4], ``scale``)
 beside the transforms file, the poses are brought into that frame, as nerfstudio brings them. Intrinsics must be
-finite, sizes and focal lengths positive. An image path that leads out of the dataset folder is refused
-(``bad_transforms``).
+finite, sizes and focal lengths positive; an image with a stated size (``w``, ``h``) must have its aspect ratio, as
+stored or turned by its EXIF orientation (``images.oriented_size``). An image path that leads out of the dataset
+folder is refused (``bad_transforms``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from torch import Tensor
 
 from ..cameras import Camera, View
 from .errors import DatasetError
-from .images import image_size, load_views
+from .images import image_size, load_views, oriented_size
 from .lens import Lens
 from .posed import (
     PosedFrame,
@@ -94,12 +95,16 @@ def _nerf_frames(root: Path, name: str) -> list[PosedFrame]:
         if c2w.shape not in ((4, 4), (3, 4)) or not np.isfinite(c2w).all() or not rotation_ok(c2w[:3, :3]):
             raise DatasetError("bad_transforms", f"{path.name}: frame {i} transform_matrix is not a rigid 4x4 pose")
         image_path = _find_image(root, file_path)
-        width, height = image_size(image_path)
-        lens = _nerf_intrinsics({**meta, **frame}, width, height, path)
+        own = {**meta, **frame}
+        orientation, width, height = 1, *image_size(image_path)
+        if "w" in own and "h" in own:  # a stated size: the image is read the way that has its aspect ratio
+            stated = _nerf_number(own, "w", path), _nerf_number(own, "h", path)
+            orientation, width, height = oriented_size(image_path, *stated, f"{path.name}'s camera")
+        lens = _nerf_intrinsics(own, width, height, path)
         rotation = (to_frame[:, :3] @ c2w[:3, :3] @ _GL_TO_CV).T
         t = -rotation @ (scale * (to_frame[:, :3] @ c2w[:3, 3] + to_frame[:, 3]))
         frames.append(posed_frame(torch.from_numpy(rotation).float(), torch.from_numpy(t).float(), lens, image_path,
-                                  file_path))  # fmt: skip
+                                  file_path, orientation))  # fmt: skip
     return frames
 
 

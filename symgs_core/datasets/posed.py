@@ -45,12 +45,14 @@ class Photograph:
 @dataclass(frozen=True)
 class PosedFrame:
     """A camera and the image file it belongs to, before the image is decoded. ``lens``: the distorted camera the
-    file was taken with, when it was (``camera`` is then the pinhole it is undistorted to on load)."""
+    file was taken with, when it was (``camera`` is then the pinhole it is undistorted to on load). ``orientation``:
+    the EXIF orientation the file's pixels are turned by as they are read (``images.oriented_size``; 1: as stored)."""
 
     camera: Camera
     path: Path
     name: str
     lens: Lens | None = None
+    orientation: int = 1
 
 
 def composite(colour: Tensor, alpha: Tensor | None, background: Tensor | tuple[float, float, float]) -> Tensor:
@@ -96,11 +98,13 @@ def rotation_ok(r: np.ndarray) -> bool:
     return bool(np.allclose(r @ r.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(r) - 1.0) < 1e-3)
 
 
-def posed_frame(rotation: Tensor, translation: Tensor, lens: Lens, path: Path, name: str) -> PosedFrame:
+def posed_frame(rotation: Tensor, translation: Tensor, lens: Lens, path: Path, name: str,
+                orientation: int = 1) -> PosedFrame:  # fmt: skip
     """The frame of a photograph taken with ``lens`` from the pose ``rotation`` [3, 3], ``translation`` [3]
-    (world-to-camera): a pinhole camera as it is, a distorted one as the pinhole it is undistorted to."""
+    (world-to-camera), its file read turned by the EXIF ``orientation``: a pinhole camera as it is, a distorted one
+    as the pinhole it is undistorted to."""
     if not lens.distorted:
         camera = Camera(rotation, translation, lens.fx, lens.fy, lens.cx, lens.cy, lens.width, lens.height, name)
-        return PosedFrame(camera, path, name)
+        return PosedFrame(camera, path, name, None, orientation)
     camera = Camera(rotation, translation, *pinhole_for(lens), name)
-    return PosedFrame(camera, path, name, lens)
+    return PosedFrame(camera, path, name, lens, orientation)
