@@ -14,7 +14,8 @@ counted in the report:
   * zero quaternions (norm below 1e-12) become the identity (1, 0, 0, 0).
 Unnormalised quaternions are normal in graphdeco files and are kept as stored. NaN anywhere, or an infinity in
 any other property, is an error (``non_finite``); so is a finite value the float32 pipeline cannot carry
-(``out_of_range``, ``LIMITS``). ``checked_scene`` applies the same rules to a scene built in memory.
+(``out_of_range``, ``LIMITS``). ``checked_scene`` applies the same rules to a scene built in memory, and to a
+PlayCanvas compressed PLY (SuperSplat's export), which is read too.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ class PlyReport:
     count       Gaussians read
     sh_degree   0..3, from the number of f_rest properties
     format      the PLY encoding (ascii, binary_little_endian, binary_big_endian)
+    layout      "graphdeco" (float properties by name) or "compressed" (PlayCanvas' packed chunks)
     properties  vertex property names in file order
     ignored     properties present but not used (normals, colours, ...)
     repairs     repair name -> number of Gaussians repaired; empty when nothing was changed
@@ -68,6 +70,7 @@ class PlyReport:
     ignored: list[str]
     repairs: dict[str, int] = field(default_factory=dict)
     comments: list[str] = field(default_factory=list)
+    layout: str = "graphdeco"
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -314,17 +317,22 @@ def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None
     """Read a Gaussian scene and a report of what was found and repaired; raises PlyError on bad input.
 
     Binary files without lists (the usual case, either byte order) are mapped and each attribute copied once from
-    the mapping; ascii files and files with list properties are parsed by plyfile."""
+    the mapping; ascii files and files with list properties are parsed by plyfile. A PlayCanvas compressed PLY
+    (SuperSplat's export) is decoded by its format's reader (``export.playcanvas``) and checked by the same rules."""
     path = Path(path)
     header = read_header(path, max_gaussians=max_gaussians)
     names, rest = header.properties, list(header.rest)
 
-    rows = _vertex_rows(path, header)
-    if rows is None:
-        rows = _parsed_rows(path, header)
+    if header.layout == "compressed":
+        from .export.playcanvas import decode_compressed  # the format's reader, beside its writer
 
-    scene, repairs = _to_scene(rows, rest, path)
-    del rows  # unmaps the file
+        scene, repairs = checked_scene(decode_compressed(path.read_bytes(), header), path.name)
+    else:
+        rows = _vertex_rows(path, header)
+        if rows is None:
+            rows = _parsed_rows(path, header)
+        scene, repairs = _to_scene(rows, rest, path)
+        del rows  # unmaps the file
     report = PlyReport(
         count=len(scene),
         sh_degree=scene.sh_degree,
@@ -333,6 +341,7 @@ def read_scene(path: str | os.PathLike[str], *, max_gaussians: int | None = None
         ignored=[n for n in names if n not in header.used],
         repairs=repairs,
         comments=list(header.comments),
+        layout=header.layout,
     )
     return scene, report
 

@@ -2,9 +2,10 @@
 
 Standard library only, so the API process checks uploads with the very rules the worker's reader applies
 (``ply.read_scene`` calls ``check_header`` first). A header is refused when it cannot describe a graphdeco scene
-(required properties, f_rest numbering, float types) or when its elements cannot fit in the file: every element's
-rows are counted at their smallest size (a list may be empty), so a header claiming 1e12 faces before its vertices
-is refused without reading them; a binary file without lists must be exactly as long as its header says. Header
+(required properties, f_rest numbering, float types) or a PlayCanvas compressed one (its elements, ranges and packed
+types), or when its elements cannot fit in the file: every element's rows are counted at their smallest size (a list
+may be empty), so a header claiming 1e12 faces before its vertices is refused without reading them; a binary file
+without lists must be exactly as long as its header says. Header
 lines end in LF or CRLF and may carry trailing whitespace (the magic line and end_header's too); comment and obj_info
 lines may hold any bytes (exporters write names in UTF-8), every other line is ASCII.
 """
@@ -24,6 +25,15 @@ SCALES = ("scale_0", "scale_1", "scale_2")
 ROTATIONS = ("rot_0", "rot_1", "rot_2", "rot_3")
 REQUIRED = GEOMETRY + DC + ("opacity",) + SCALES + ROTATIONS
 SH_DEGREE_OF_REST = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest properties -> SH degree
+# PlayCanvas compressed PLY (SuperSplat's and splat-transform's export): chunks of 256 Gaussians, each chunk's
+# ranges in ``chunk`` (the colour ranges only in later writers), the Gaussians packed in four uint32, the higher SH
+# as uchar in ``sh``.
+CHUNK = 256
+CHUNK_RANGES = tuple(f"{end}_{axis}" for end in ("min", "max") for axis in "xyz") + tuple(
+    f"{end}_scale_{axis}" for end in ("min", "max") for axis in "xyz"
+)
+CHUNK_COLOURS = ("min_r", "min_g", "min_b", "max_r", "max_g", "max_b")
+PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
 
 # PLY scalar types: byte size and numpy kind.
 TYPES = {
@@ -71,7 +81,8 @@ class Element:
 
 @dataclass(frozen=True)
 class PlyHeader:
-    """A checked Gaussian-scene header. ``size``: bytes up to and including the end_header line."""
+    """A checked Gaussian-scene header. ``size``: bytes up to and including the end_header line. ``layout``:
+    "graphdeco" (float properties by name) or "compressed" (PlayCanvas' packed chunks, ``CHUNK_RANGES``)."""
 
     format: str
     elements: tuple[Element, ...]
@@ -79,6 +90,7 @@ class PlyHeader:
     size: int
     vertex: Element
     rest: tuple[str, ...]  # f_rest_0 .. f_rest_{3K-1}
+    layout: str = "graphdeco"
 
     @property
     def count(self) -> int:
@@ -94,7 +106,7 @@ class PlyHeader:
 
     @property
     def used(self) -> set[str]:
-        return set(REQUIRED) | set(self.rest)
+        return set(PACKED if self.layout == "compressed" else REQUIRED) | set(self.rest)
 
 
 # Splat formats an upload may come in by mistake, by their first bytes: named in the refusal, so a user knows why.
@@ -212,20 +224,57 @@ def _check_size(fmt: str, elements: list[Element], vertex: Element, body: int, n
         )
 
 
+def _compressed(fmt: str, elements: list[Element], comments: list[str], size: int, file_size: int, name: str,
+                max_gaussians: int | None) -> PlyHeader:  # fmt: skip
+    """The header of a PlayCanvas compressed PLY: elements ``chunk``, ``vertex`` and optionally ``sh``, each property
+    by name with its type, one chunk per 256 Gaussians, the file exactly as long as they are."""
+    what = f"{name}: a PlayCanvas compressed PLY"
+    if fmt != "binary_little_endian":
+        raise PlyError("unsupported_format", f"{what} in {fmt}; its writers use binary_little_endian")
+    by_name = {e.name: e for e in elements}
+    if set(by_name) - {"chunk", "vertex", "sh"} or "chunk" not in by_name:
+        raise PlyError("unsupported_format", f"{what} has elements {', '.join(e.name[:40] for e in elements)}; "
+                       "expected chunk, vertex and optionally sh")  # fmt: skip
+    kinds = {"chunk": "f", "vertex": "u", "sh": "u"}
+    widths = {"chunk": 4, "vertex": 4, "sh": 1}
+    for e in elements:
+        for prop, value, length in e.properties:
+            if length is not None or TYPES[value] != (widths[e.name], kinds[e.name]):
+                raise PlyError("unsupported_format", f"{what}: {e.name} property {prop[:40]!r} is {value}")
+    chunk, vertex = by_name["chunk"], by_name["vertex"]
+    ranges = {p[0] for p in chunk.properties}
+    if ranges not in (set(CHUNK_RANGES), set(CHUNK_RANGES + CHUNK_COLOURS)) or len(ranges) != len(chunk.properties):
+        raise PlyError("missing_property", f"{what}: chunk properties {sorted(ranges)[:20]} are not its ranges")
+    if {p[0] for p in vertex.properties} != set(PACKED) or len(vertex.properties) != len(PACKED):
+        raise PlyError("missing_property", f"{what}: vertex properties are not {', '.join(PACKED)}")
+    rest: tuple[str, ...] = ()
+    if "sh" in by_name:
+        sh = by_name["sh"]
+        rest = _rest_names([p[0] for p in sh.properties], name)
+        if len(rest) != len(sh.properties) or sh.count != vertex.count:
+            raise PlyError("malformed", f"{what}: sh holds {sh.count} rows of {len(sh.properties)} values for "
+                           f"{vertex.count} Gaussians")  # fmt: skip
+    if chunk.count != -(-vertex.count // CHUNK):
+        raise PlyError("malformed", f"{what}: {chunk.count} chunks for {vertex.count} Gaussians (one per {CHUNK})")
+    if max_gaussians is not None and vertex.count > max_gaussians:
+        raise PlyError("too_many_gaussians", f"{name}: {vertex.count} Gaussians exceed the limit of {max_gaussians}")
+    _check_size(fmt, elements, vertex, file_size - size, name)
+    return PlyHeader(fmt, tuple(elements), tuple(comments), size, vertex, rest, "compressed")
+
+
 def check_header(
     head: bytes, file_size: int, *, name: str = "scene.ply", max_gaussians: int | None = None
 ) -> PlyHeader:
-    """Parse ``head`` (the first bytes of a file of ``file_size`` bytes) as a Gaussian-scene PLY header; PlyError
-    names what is wrong."""
+    """Parse ``head`` (the first bytes of a file of ``file_size`` bytes) as a Gaussian-scene PLY header, graphdeco or
+    PlayCanvas compressed; PlyError names what is wrong."""
     fmt, elements, comments, size = _parse(head[:MAX_HEADER_BYTES], name)
     vertex = next((e for e in elements if e.name == "vertex"), None)
     if vertex is None:
         raise PlyError("missing_property", f"{name}: no 'vertex' element")
     names = [p[0] for p in vertex.properties]
     missing = [p for p in REQUIRED if p not in names]
-    if missing and "packed_position" in names:  # what SuperSplat and splat-transform write: not a broken file
-        raise PlyError("unsupported_format", f"{name}: a PlayCanvas compressed PLY (packed properties in chunks); "
-                       "convert it to a graphdeco PLY first, as PlayCanvas' splat-transform does")  # fmt: skip
+    if missing and "packed_position" in names:  # what SuperSplat and splat-transform write
+        return _compressed(fmt, elements, comments, size, file_size, name, max_gaussians)
     if missing:
         raise PlyError("missing_property", f"{name}: missing required properties {', '.join(missing)}")
     rest = _rest_names(names, name)

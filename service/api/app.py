@@ -29,8 +29,8 @@ API_VERSION = "1.0.0"
 DESCRIPTION = """\
 Compression of 3D Gaussian Splatting scenes that removes reflective symmetry (SymGS).
 
-Submit a trained scene (`.ply`, graphdeco layout) and optionally the posed images it was trained from; follow the
-job's progress; download the compressed archive, the decoded scene and the metrics.
+Submit a trained scene (`.ply`, graphdeco layout or PlayCanvas compressed) and optionally the posed images it was
+trained from; follow the job's progress; download the compressed archive, the decoded scene and the metrics.
 
 When the server is configured with API keys, send one as `Authorization: Bearer <key>`; each job belongs to the key
 that created it, and other keys get 404 for it. Errors are `{"error": {"code": "...", "message": "..."}}`.

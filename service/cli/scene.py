@@ -89,6 +89,7 @@ def describe(path: Path) -> dict[str, Any]:
         "count": report.count,
         "sh_degree": report.sh_degree,
         "format": report.format,
+        "layout": report.layout,
         "bounds": {
             "min": [] if empty else means.min(dim=0).values.tolist(),
             "max": [] if empty else means.max(dim=0).values.tolist(),
@@ -116,7 +117,7 @@ def run_info(args: argparse.Namespace) -> int:
         ("scene", info["file"]),
         ("gaussians", f"{info['count']:,}"),
         ("sh degree", str(info["sh_degree"])),
-        ("format", info["format"]),
+        ("format", info["format"] + (" (PlayCanvas compressed)" if info["layout"] == "compressed" else "")),
         ("bounds", bounds),
         ("centre", "({:.4g}, {:.4g}, {:.4g})".format(*info["center"]) + f"  radius {info['radius']:.4g}"),
         ("properties", f"{_compact(info['properties'])}  ({len(info['properties'])})"),

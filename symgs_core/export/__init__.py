@@ -22,7 +22,6 @@ _PUBLIC = {
     "SpzError": "spz",
     "read_spz": "spz",
     "write_spz": "spz",
-    "CompressedPlyError": "playcanvas",
     "compressed_ply_order": "playcanvas",
     "read_compressed_ply": "playcanvas",
     "write_compressed_ply": "playcanvas",

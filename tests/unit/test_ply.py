@@ -574,18 +574,6 @@ def test_a_float64_scene_in_memory_is_checked_as_a_file_is() -> None:
     assert err.value.code == "out_of_range"
 
 
-def test_a_playcanvas_compressed_ply_is_named_as_such(tmp_path: Path) -> None:
-    """SuperSplat's export: a valid file of another layout, refused as unsupported, not as one missing its data."""
-    from symgs_core.export import export_scene
-    from symgs_core.synthetic import synthetic_scene
-
-    path = tmp_path / "s.compressed.ply"
-    export_scene(synthetic_scene("global", n=300, seed=1).scene, path)
-    with pytest.raises(PlyError, match="PlayCanvas compressed PLY") as caught:
-        load_scene(path)
-    assert caught.value.code == "unsupported_format"
-
-
 def test_save_scene_writes_ply_only_under_a_name_of_its_own(tmp_path: Path) -> None:
     from symgs_core.synthetic import synthetic_scene
 
