@@ -67,6 +67,20 @@ class LevelReport(BaseModel):
     archive_bytes: int | None = Field(None, description="the whole archive with this level, when it held the floor")
 
 
+class Refinement(BaseModel):
+    """Against photographs, the upload fine-tuned as a whole before the mirrors; PSNRs on the fitting cameras, bytes of
+    the plain codec's archive."""
+
+    steps: int = Field(description="fine-tune steps run (it stops once a stretch stops gaining, or could not pay)")
+    psnr_before: float | None = Field(description="the upload's")
+    psnr_after: float | None
+    bytes_before: int = Field(description="the upload's plain archive")
+    bytes_after: int | None = Field(description="the fine-tuned scene's (null: not coded, it gained too little)")
+    kept: bool = Field(description="whether the later stages start from the fine-tuned scene")
+    reason: str
+    seconds: float
+
+
 class StageReport(BaseModel):
     """What one stage saved and cost; PSNR on the fitting cameras after it."""
 
@@ -169,3 +183,5 @@ class Report(BaseModel):
     config: ReportConfig
     notes: list[str] = Field(default_factory=list,
                              description="what the user could do for a better result (send the photographs, ...)")
+    refinement: Refinement | None = Field(None, description="against photographs: the upload's own fine-tune before "
+                                          "the mirrors (null: none was run)")  # fmt: skip

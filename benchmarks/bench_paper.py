@@ -58,6 +58,8 @@ def main() -> int:
         report = compress(ply, images=args.capture, config=replace(config, use_mirrors=mirrors)).report
         rows.append((label, report, time.perf_counter() - t0))
         say(f"{label}: {report.output_bytes:,} B, {report.fidelity.psnr:.2f} dB, {time.perf_counter() - t0:.0f} s")
+        if report.refinement is not None:  # the upload's own fine-tune on the photographs, before any mirror
+            say(f"  upload fine-tuned: {report.refinement.reason}")
         for level in report.levels:  # why each mirror tried was kept or not: what a run on a GPU has to tell
             say(f"  level {level.level}: {'kept' if level.accepted else 'not kept'} ({level.reason}); "
                 f"{level.left:,} kept and reflected, {level.right:,} dropped; fitting PSNR {level.psnr_before:.2f} "
@@ -77,7 +79,10 @@ def main() -> int:
     plain = rows[0][1].output_bytes
     for label, report, seconds in rows:
         levels = len(report.accepted_levels)
-        note = (f"{levels} mirror level(s), {plain / report.output_bytes:.2f}x the plain codec; "
+        refined = report.refinement
+        tuned = "" if refined is None else (
+            f"the upload fine-tuned {refined.steps} steps first ({'kept' if refined.kept else 'not kept'}); ")
+        note = (f"{levels} mirror level(s), {plain / report.output_bytes:.2f}x the plain codec; {tuned}"
                 f"{report.fidelity.psnr_object:.2f} dB on the object's pixels; {seconds:.0f} s")
         print(f"| {label} | lego, {resolution} px | {report.output_bytes / 1e6:.3f} | {report.fidelity.psnr:.2f} | "
               f"{note} |")

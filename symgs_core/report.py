@@ -86,6 +86,21 @@ class LevelReport:
 
 
 @dataclass(frozen=True)
+class Refinement:
+    """Against photographs, the upload fine-tuned as a whole before the mirrors (``pipeline.refine``); PSNRs on the
+    fitting cameras, bytes of the plain codec's archive."""
+
+    steps: int  # fine-tune steps run (it stops once a stretch stops gaining, or could no longer pay)
+    psnr_before: float  # the upload's
+    psnr_after: float
+    bytes_before: int  # the upload's plain archive
+    bytes_after: int | None  # the fine-tuned scene's (None: not coded, it gained too little)
+    kept: bool  # whether the later stages start from the fine-tuned scene
+    reason: str
+    seconds: float
+
+
+@dataclass(frozen=True)
 class StageReport:
     """What one stage saved and cost; PSNR on the fitting cameras after it."""
 
@@ -161,6 +176,7 @@ class Report:
     device: str
     config: CompressConfig
     notes: tuple[str, ...] = ()  # what the user could do for a better result (send the photographs, ...)
+    refinement: Refinement | None = None  # against photographs: the upload's own fine-tune (None: none was run)
 
     @property
     def accepted_levels(self) -> list[LevelReport]:

@@ -99,6 +99,8 @@ def _compress(args: argparse.Namespace) -> int:
         f"on {r.cameras.evaluation.count} evaluation cameras against {r.cameras.evaluation.source}: "
         f"PSNR {db(r.fidelity.psnr)} (object {db(r.fidelity.psnr_object)}), SSIM {r.fidelity.ssim:.4f}"
     )
+    if r.refinement is not None:
+        print(f"upload fine-tuned on the photographs first: {r.refinement.reason}")
     for note in r.notes:
         print(f"note: {note}")
     return 0

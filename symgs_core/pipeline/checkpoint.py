@@ -1,5 +1,6 @@
-"""The level loop's checkpoint: its state, records and best size saved after every level, and read back by a rerun
-of the same job (the same ``fingerprint`` of its inputs), so a job whose worker died resumes after its last level."""
+"""A job's checkpoints: the level loop's state, records and best size saved after every level, and the upload's own
+fine-tune against photographs (``refine``), each read back by a rerun of the same job (the same ``fingerprint`` of
+its inputs), so a job whose worker died resumes after its last level, its fine-tune done."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 
 from ..config import CompressConfig
 from ..files import partial_file
-from ..report import LevelReport
+from ..report import LevelReport, Refinement
 from ..scene import GaussianScene
 from .state import LevelState
 
@@ -81,3 +82,31 @@ def load_checkpoint(
     state = LevelState(GaussianScene(**payload["stored"]), payload["normals"], payload["offsets"], payload["bits"])
     records = [LevelReport(**{**r, "normal": tuple(r["normal"])}) for r in payload["records"]]
     return state, records, bool(payload["done"]), int(payload["best_bytes"])
+
+
+def save_refined(path: Path, fingerprint: str, scene: GaussianScene | None, record: Refinement) -> None:
+    """The upload's fine-tune: the scene kept (None: the upload) and its record, for a rerun to go on from."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "fingerprint": fingerprint,
+        "stored": None if scene is None else {k: v.detach().cpu() for k, v in scene.tensors().items()},
+        "record": asdict(record),
+    }
+    with partial_file(path) as (out, tmp):
+        torch.save(payload, out)
+    os.replace(tmp, path)
+
+
+def load_refined(path: Path, fingerprint: str, device: torch.device) -> tuple[GaussianScene | None, Refinement] | None:
+    """What ``save_refined`` saved for the inputs ``fingerprint``; None where there is none, it cannot be read, or it
+    was saved for other inputs."""
+    if not path.exists():
+        return None
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+        if payload.get("fingerprint") != fingerprint:
+            return None
+        scene = None if payload["stored"] is None else GaussianScene(**payload["stored"])
+        return scene, Refinement(**payload["record"])
+    except Exception:  # noqa: BLE001 - an unreadable checkpoint is recomputed, never trusted
+        return None

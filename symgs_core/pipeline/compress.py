@@ -1,6 +1,7 @@
 """Compress and decompress end to end. ``compress`` runs the job's stages in order, each a function of the state
-the one before returned: load and views (``prepare``), the plain codec (``codec_fit``), the mirror levels
-(``levels``), then the archive, its evaluation and the report (``result``)."""
+the one before returned: load and views (``prepare``), the plain codec (``codec_fit``), against photographs the upload
+fine-tuned as a whole (``refine``), the mirror levels (``levels``), then the archive, its evaluation and the report
+(``result``)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from ..config import CompressConfig
 from ..devices import resolve_device
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
-from . import codec_fit, levels, prepare, result
+from . import codec_fit, levels, prepare, refine, result
 from .job import Job, Reporter
 from .result import CompressResult
 
@@ -47,7 +48,8 @@ def compress(
         loaded = prepare.load(scene, job)
         viewed = prepare.views(loaded, job)
         fitted = codec_fit.fit(viewed, job)
-        levelled = levels.levels(fitted, job)
+        refined = refine.refine(fitted, job)
+        levelled = levels.levels(refined, job)
         encoded = result.encode(levelled, job)
         evaluated = result.evaluate(encoded, job)
         return result.report(evaluated, job)

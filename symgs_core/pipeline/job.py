@@ -16,7 +16,8 @@ from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 STAGE_SHARES = {
     "load": (0.0, 0.02),
     "views": (0.02, 0.06),
-    "codec": (0.06, 0.45),
+    "codec": (0.06, 0.35),
+    "refine": (0.35, 0.45),
     "levels": (0.45, 0.88),
     "encode": (0.88, 0.93),
     "evaluate": (0.93, 1.0),

@@ -29,11 +29,12 @@ from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate, worst_psnr
 from .checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
-from .codec_fit import CodecFitted
 from .encode import Fitted, Rate, rate_model
 from .gating import colour_mismatch, gated
 from .job import Job, Reporter, grown
 from .optimize import halo, optimize_level
+from .pace import MIN_GAIN_DB, Pace
+from .refine import Refined
 from .state import LevelState
 
 # Colour-agreement gates (largest RGB channel difference) tried after the geometric membership, loosest first.
@@ -49,8 +50,6 @@ MIN_SAVING = 0.02
 TUNE_GAIN = 3.0
 # Fine-tunes tried per level before the level is given up.
 MAX_ATTEMPTS = 2
-# The fine-tune goes on in stretches of a quarter of ``iterations`` while each stretch gains at least this much.
-MIN_GAIN_DB = 0.05
 # Neighbours within this many local spacings of a mirror's two sides move with them in its fine-tune.
 HALO_SPACINGS = 3.0
 # Against renders of the input, a membership that, as it starts, costs the codec less than this share of its bytes (by
@@ -248,27 +247,6 @@ def hopeless(psnr_before: float, floor: float) -> bool:
 
 
 Judge = Callable[[LevelState, float], Fitted]  # (state, its fitting PSNR) -> its archive at the floor
-
-
-@dataclass(frozen=True)
-class Pace:
-    """Whether a fine-tune may still pay from where a stretch left it: were every stretch to come to gain as much as
-    the last (a fine-tune's stretches gain less and less as its learning rates decay, so that is the most it may
-    reach), would the state hold the floor and, by the rate model (``rate``; None: the floor alone), make an archive
-    smaller than ``best_bytes``? ``now``: the archive of the state the level starts from (fitting PSNR ``psnr``),
-    scaled to the Gaussians the membership keeps."""
-
-    floor: float
-    rate: Rate | None
-    psnr: float
-    now: float
-    best_bytes: int
-
-    def __call__(self, reached: float, gained: float, stretches_left: int) -> bool:
-        reach = reached + max(gained, 0.0) * stretches_left
-        if reach < self.floor:
-            return False
-        return self.rate is None or self.now * self.rate(self.psnr, reach) < self.best_bytes
 
 
 def tune(
@@ -470,14 +448,14 @@ def run_levels(
 
 
 @dataclass(frozen=True)
-class Levelled(CodecFitted):
+class Levelled(Refined):
     """``levels``: the state the levels end on (no plane: the plain scene), its fitting PSNR, every level tried, and
     its judged archive (None: the plain codec's, or a state resumed from a checkpoint, not judged in this run)."""
 
     levels: LevelOutcome
 
 
-def levels(fitted: CodecFitted, job: Job) -> Levelled:
+def levels(fitted: Refined, job: Job) -> Levelled:
     config, plain = job.config, fitted.plain
     # Levels are judged by fitted archives: a preset that fits nothing keeps none.
     max_levels = config.max_levels if config.use_mirrors and job.preset.fitted else 0

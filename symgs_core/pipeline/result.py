@@ -81,7 +81,7 @@ def evaluate(encoded: Encoded, job: Job) -> Evaluated:
         fitting = scored(decoded, views.fit, views.background)
     psnr_input = math.inf
     if job.photographs:
-        psnr_input = scored(encoded.source, views.eval, views.background, with_ssim=False).worst
+        psnr_input = scored(encoded.upload, views.eval, views.background, with_ssim=False).worst
     job.reporter.timed("evaluate", time.perf_counter() - t0)
     return grown(encoded, Evaluated, decoded=decoded, fidelity=fidelity, fitting=fitting, psnr_input=psnr_input)
 
@@ -112,6 +112,7 @@ def report(evaluated: Evaluated, job: Job) -> CompressResult:
         device=str(job.device),
         config=job.config,
         notes=level_notes(outcome.records, len(source), photographs=job.photographs),
+        refinement=evaluated.refinement,
     )
     images: dict[str, bytes] = {}
     if job.config.pictures:
@@ -119,7 +120,7 @@ def report(evaluated: Evaluated, job: Job) -> CompressResult:
 
         t0 = time.perf_counter()
         job.reporter("evaluate", 0.5, "drawing pictures")
-        images = job_pictures(source, evaluated.decoded, views, result, charts=job.charts)
+        images = job_pictures(evaluated.upload, evaluated.decoded, views, result, charts=job.charts)
         job.reporter.timed("pictures", time.perf_counter() - t0)
         result = replace(result, seconds=dict(job.reporter.seconds))
     job.reporter("evaluate", 1.0, "done")
