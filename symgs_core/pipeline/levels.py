@@ -337,8 +337,10 @@ class LevelSearch:
     """What the level loop starts from: the input, its camera sets, the ``floor`` every level holds on the fitting
     views, the ``reference`` (the input's own fitting PSNR: +inf against renders of it, finite against
     photographs), its ``extent`` (radius), the plain codec's ``plain_bytes`` and ``steps`` (which the fine-tunes
-    round to, straight-through, so that what they learn survives the codec; None: float32), and its ``rate`` model
-    (None: none)."""
+    round to, straight-through, so that what they learn survives the codec; None: float32), its ``rate`` model
+    (None: none), and ``detect_from``: the scene the first level's mirror is sought in where that is not ``source``
+    itself, Gaussian for Gaussian (the upload, whose halves the whole fine-tune of ``refine`` trained apart: on the
+    CPU-trained lego it finds no mirror in the fine-tuned scene and one in the upload)."""
 
     source: GaussianScene
     views: ViewSet
@@ -348,6 +350,7 @@ class LevelSearch:
     plain_bytes: int
     steps: QuantSteps | None
     rate: Rate | None = None
+    detect_from: GaussianScene | None = None
 
 
 @dataclass(frozen=True)
@@ -384,7 +387,8 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        mirrors = detect(state.stored, detect_config, exclude=state.planes)
+        seek = search.detect_from if level == 0 and search.detect_from is not None else state.stored
+        mirrors = detect(seek, detect_config, exclude=state.planes)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
         attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,
@@ -463,6 +467,7 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     search = LevelSearch(
         fitted.source, fitted.views, fitted.floor, fitted.reference, radius, len(plain.archive), plain.steps,
         rate_model(plain, fitted.floor) if plain.rd is not None else None,
+        fitted.upload if fitted.upload is not fitted.source else None,
     )
     checkpoint = None
     if job.checkpoint_dir is not None:

@@ -108,3 +108,22 @@ def test_the_fine_tune_renders_score_what_the_report_says(capture) -> None:  # n
     record = result.report.refinement
     assert record is not None
     assert evaluate(upload, views.fit, views.background, with_ssim=False).worst == pytest.approx(record.psnr_before)
+
+
+def test_the_first_mirror_is_sought_in_the_upload_whose_halves_the_fine_tune_trained_apart(capture,
+                                                                                          monkeypatch) -> None:  # noqa: ANN001
+    """Gaussian for Gaussian the fine-tuned scene is the upload's, so a mirror found in the upload indexes it."""
+    import symgs_core.detect as detection
+
+    folder, upload = capture
+    seen, found = [], detection.detect
+
+    def recorded(scene, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen.append(scene)
+        return found(scene, *args, **kwargs)
+
+    monkeypatch.setattr(detection, "detect", recorded)
+    config = CompressConfig.for_preset(**{**SMALL, "use_mirrors": True, "max_levels": 1})
+    result = compress(upload, images=folder, config=config, charts=False)
+    assert result.report.refinement is not None and result.report.refinement.kept
+    assert len(seen) == 1 and torch.equal(seen[0].means, upload.means)
