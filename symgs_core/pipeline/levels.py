@@ -338,9 +338,9 @@ class LevelSearch:
     views, the ``reference`` (the input's own fitting PSNR: +inf against renders of it, finite against
     photographs), its ``extent`` (radius), the plain codec's ``plain_bytes`` and ``steps`` (which the fine-tunes
     round to, straight-through, so that what they learn survives the codec; None: float32), its ``rate`` model
-    (None: none), and ``detect_from``: the scene the first level's mirror is sought in where that is not ``source``
-    itself, Gaussian for Gaussian (the upload, whose halves the whole fine-tune of ``refine`` trained apart: on the
-    CPU-trained lego it finds no mirror in the fine-tuned scene and one in the upload)."""
+    (None: none), and ``detect_from``: where ``source`` holds no mirror, the scene the first level's is sought in,
+    Gaussian for Gaussian ``source``'s (the upload, whose halves the whole fine-tune of ``refine`` trained apart: on
+    the CPU-trained lego detection finds no mirror in the fine-tuned scene and one in the upload)."""
 
     source: GaussianScene
     views: ViewSet
@@ -387,8 +387,9 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        seek = search.detect_from if level == 0 and search.detect_from is not None else state.stored
-        mirrors = detect(seek, detect_config, exclude=state.planes)
+        mirrors = detect(state.stored, detect_config, exclude=state.planes)
+        if not mirrors and level == 0 and search.detect_from is not None:
+            mirrors = detect(search.detect_from, detect_config)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
         attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,

@@ -6,7 +6,9 @@ what it gains: the floor stays the upload's own fitting PSNR less the budget. Th
 mirror level's does, while each gains and, by the plain archive's rate model, the archive could still shrink
 (``pace.Pace``); the fine-tuned scene is then coded and kept only where its archive is smaller than the upload's.
 A scene trained to convergence gains nothing in its first stretch and is coded as it was uploaded. The mirror levels
-then start from the scene kept, so mirrors are judged against the same plain codec, with or without them.
+then start from the scene kept, so mirrors are judged against the same plain codec, with or without them; where the
+fine-tuned scene holds no mirror, the first is sought in the upload (``levels.LevelSearch.detect_from``), as the
+fine-tune trains the halves apart.
 """
 
 from __future__ import annotations

@@ -110,20 +110,22 @@ def test_the_fine_tune_renders_score_what_the_report_says(capture) -> None:  # n
     assert evaluate(upload, views.fit, views.background, with_ssim=False).worst == pytest.approx(record.psnr_before)
 
 
-def test_the_first_mirror_is_sought_in_the_upload_whose_halves_the_fine_tune_trained_apart(capture,
-                                                                                          monkeypatch) -> None:  # noqa: ANN001
-    """Gaussian for Gaussian the fine-tuned scene is the upload's, so a mirror found in the upload indexes it."""
+def test_where_the_fine_tuned_scene_holds_no_mirror_the_first_is_sought_in_the_upload(capture,
+                                                                                     monkeypatch) -> None:  # noqa: ANN001
+    """Gaussian for Gaussian the fine-tuned scene is the upload's, so a mirror found in the upload indexes it; the
+    working set is searched first."""
     import symgs_core.detect as detection
 
     folder, upload = capture
     seen, found = [], detection.detect
 
-    def recorded(scene, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+    def nothing_in_the_working_set(scene, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
         seen.append(scene)
-        return found(scene, *args, **kwargs)
+        return [] if len(seen) == 1 else found(scene, *args, **kwargs)
 
-    monkeypatch.setattr(detection, "detect", recorded)
+    monkeypatch.setattr(detection, "detect", nothing_in_the_working_set)
     config = CompressConfig.for_preset(**{**SMALL, "use_mirrors": True, "max_levels": 1})
     result = compress(upload, images=folder, config=config, charts=False)
     assert result.report.refinement is not None and result.report.refinement.kept
-    assert len(seen) == 1 and torch.equal(seen[0].means, upload.means)
+    assert len(seen) == 2 and not torch.equal(seen[0].means, upload.means)
+    assert torch.equal(seen[1].means, upload.means)
