@@ -21,10 +21,13 @@ from .state import LevelState
 
 def fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Path | None) -> str:
     """The job's inputs, which a checkpoint must match to be resumed from."""
-    h = hashlib.sha256()
-    for t in scene.tensors().values():
-        h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    h.update(json.dumps(asdict(config), sort_keys=True, default=str).encode())
+    return scene_fingerprint(scene, settings_digest(config, images))
+
+
+def settings_digest(config: CompressConfig, images: str | Path | None) -> bytes:
+    """What a job's checkpoints must match besides its scene: the settings and the photographs' contents (a job's
+    stages take it once, ``Job.settings_digest``: a phone capture's photographs are read whole to hash them)."""
+    h = hashlib.sha256(json.dumps(asdict(config), sort_keys=True, default=str).encode())
     if images is not None:  # the dataset's contents, not where it lies: a job resumed on another host matches
         root = Path(images)
         for file in sorted(p for p in (root.rglob("*") if root.is_dir() else [root]) if p.is_file()):
@@ -32,6 +35,15 @@ def fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Path
             with file.open("rb") as f:
                 for chunk in iter(lambda: f.read(1 << 20), b""):
                     h.update(chunk)
+    return h.digest()
+
+
+def scene_fingerprint(scene: GaussianScene, settings: bytes) -> str:
+    """``fingerprint`` of ``scene`` with its job's ``settings_digest``."""
+    h = hashlib.sha256()
+    for t in scene.tensors().values():
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    h.update(settings)
     return h.hexdigest()
 
 

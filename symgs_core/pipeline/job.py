@@ -4,6 +4,7 @@ carries its progress, its cancellation and the seconds each stage took (``Report
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import cached_property
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -11,6 +12,7 @@ import torch
 
 from ..config import PRESETS, CompressConfig, PresetSpec
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
+from .checkpoint import settings_digest
 
 # Share of the job's progress bar each stage takes; the mirror levels share theirs.
 STAGE_SHARES = {
@@ -64,6 +66,11 @@ class Job:
     @property
     def photographs(self) -> bool:
         return self.images is not None
+
+    @cached_property
+    def settings_digest(self) -> bytes:
+        """What every checkpoint of the job matches besides its scene (``checkpoint.settings_digest``), read once."""
+        return settings_digest(self.config, self.images)
 
 
 State = TypeVar("State")

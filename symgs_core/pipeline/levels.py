@@ -28,12 +28,12 @@ from ..mirror import Plane, reflect
 from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate, worst_psnr
-from .checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
+from .checkpoint import Checkpoint, load_checkpoint, save_checkpoint, scene_fingerprint
 from .encode import Fitted, Rate, rate_model
 from .gating import colour_mismatch, gated
 from .job import Job, Reporter, grown
 from .optimize import halo, optimize_level
-from .pace import MIN_GAIN_DB, Pace
+from .pace import Pace, Stretches
 from .refine import Refined
 from .state import LevelState
 
@@ -270,18 +270,7 @@ def tune(
     fitting PSNR, as the plan rendered it (``Attempt.psnr_before``, exact for every membership it lets run)."""
     region = torch.cat([membership.left, membership.right])
     trainable = halo(state.stored, region, candidate.stored, radius=HALO_SPACINGS * spacing)
-    check_every = max(config.iterations // 4, 1)
-    best = {"psnr": start, "stretches": math.ceil(config.iterations / check_every), "cut": False}
-
-    def keep_going(so_far: LevelState) -> bool:
-        psnr = evaluate(so_far.expanded(), views.fit, views.background, with_ssim=False).worst
-        gained = psnr - best["psnr"]
-        best["psnr"] = max(best["psnr"], psnr)
-        best["stretches"] -= 1
-        if pace is not None and not pace(best["psnr"], gained, int(best["stretches"])):
-            best["cut"] = True
-            return False
-        return gained >= MIN_GAIN_DB
+    stretches = Stretches(views, start, config.iterations, pace)
 
     def on_step(step: int, loss: Tensor) -> None:
         if step % 10 == 0:
@@ -291,13 +280,13 @@ def tune(
     torch.manual_seed(config.seed + 1000 * (level + 1))
     tuned, run = optimize_level(
         candidate, views.train, views.background, iterations=config.iterations, extent=extent, trainable=trainable,
-        steps=steps, seed=config.seed + level, check_every=check_every, keep_going=keep_going,
+        steps=steps, seed=config.seed + level, check_every=stretches.every, keep_going=stretches,
         should_stop=report.should_stop, on_step=on_step,
     )  # fmt: skip
-    psnr = evaluate(tuned.expanded(), views.fit, views.background, with_ssim=False).worst
+    psnr = stretches.fitting_psnr(tuned, run)
     if psnr < start:  # the fine-tune must pay for itself too: exact twins need none
-        return candidate.detach(), start, run, bool(best["cut"])
-    return tuned, psnr, run, bool(best["cut"])
+        return candidate.detach(), start, run, stretches.cut
+    return tuned, psnr, run, stretches.cut
 
 
 def _unpaid(attempt: Attempt, floor: float, best_bytes: int) -> str:
@@ -472,7 +461,7 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     )
     checkpoint = None
     if job.checkpoint_dir is not None:
-        checkpoint = Checkpoint(job.checkpoint_dir / "levels.pt", fingerprint(fitted.source, config, job.images))
+        checkpoint = Checkpoint(job.checkpoint_dir / "levels.pt", scene_fingerprint(fitted.source, job.settings_digest))
     t0 = time.perf_counter()
     outcome = run_levels(search, config=replace(config, max_levels=max_levels), judge=fitted.codec,
                          report=job.reporter, checkpoint=checkpoint)  # fmt: skip

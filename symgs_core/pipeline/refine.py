@@ -13,7 +13,6 @@ fine-tune trains the halves apart.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, replace
 
@@ -23,13 +22,12 @@ from torch import Tensor
 from ..cameras import scene_bounds
 from ..report import Refinement
 from ..scene import GaussianScene
-from ..views import evaluate
-from .checkpoint import fingerprint, load_refined, save_refined
+from .checkpoint import load_refined, save_refined, scene_fingerprint
 from .codec_fit import CodecFitted
 from .encode import Fitted, rate_model
 from .job import Job, grown
 from .optimize import optimize_level
-from .pace import MIN_GAIN_DB, Pace
+from .pace import MIN_GAIN_DB, Pace, Stretches
 from .state import LevelState
 
 
@@ -49,7 +47,7 @@ def refine(fitted: CodecFitted, job: Job) -> Refined:
         return grown(fitted, Refined, upload=fitted.source, refinement=None)
     checkpoint = None
     if job.checkpoint_dir is not None:
-        checkpoint = (job.checkpoint_dir / "refined.pt", fingerprint(fitted.source, config, job.images))
+        checkpoint = (job.checkpoint_dir / "refined.pt", scene_fingerprint(fitted.source, job.settings_digest))
         resumed = load_refined(*checkpoint, fitted.source.device)
         if resumed is not None:
             scene, record = resumed
@@ -93,17 +91,9 @@ def _fine_tune(fitted: CodecFitted, job: Job) -> tuple[GaussianScene, float, int
     stretch gains and ``Pace`` says the plain archive could still shrink; the scene, its fitting PSNR and the steps
     run."""
     config, views, plain = job.config, fitted.views, fitted.plain
-    check_every = max(config.iterations // 4, 1)
     pace = Pace(fitted.floor, rate_model(plain, fitted.floor), fitted.reference, len(plain.archive),
                 len(plain.archive))  # fmt: skip
-    best = {"psnr": fitted.reference, "stretches": math.ceil(config.iterations / check_every)}
-
-    def keep_going(so_far: LevelState) -> bool:
-        psnr = evaluate(so_far.expanded(), views.fit, views.background, with_ssim=False).worst
-        gained = psnr - best["psnr"]
-        best["psnr"] = max(best["psnr"], psnr)
-        best["stretches"] -= 1
-        return gained >= MIN_GAIN_DB and pace(best["psnr"], gained, int(best["stretches"]))
+    stretches = Stretches(views, fitted.reference, config.iterations, pace)
 
     def on_step(step: int, loss: Tensor) -> None:
         if step % 10 == 0:
@@ -115,8 +105,7 @@ def _fine_tune(fitted: CodecFitted, job: Job) -> tuple[GaussianScene, float, int
     torch.manual_seed(config.seed)
     tuned, steps = optimize_level(
         LevelState.plain(fitted.source), views.train, views.background, iterations=config.iterations,
-        extent=radius, steps=plain.steps, seed=config.seed, check_every=check_every, keep_going=keep_going,
+        extent=radius, steps=plain.steps, seed=config.seed, check_every=stretches.every, keep_going=stretches,
         should_stop=job.reporter.should_stop, on_step=on_step,
     )  # fmt: skip
-    psnr = evaluate(tuned.expanded(), views.fit, views.background, with_ssim=False).worst
-    return tuned.stored, psnr, steps
+    return tuned.stored, stretches.fitting_psnr(tuned, steps), steps
