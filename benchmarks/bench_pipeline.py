@@ -85,6 +85,9 @@ def main() -> None:
     parser.add_argument("--noise", nargs="*", type=float, default=[0.0],
                         help="positional noise of the generated objects (fraction of their size), one row each")
     parser.add_argument("--clutter", type=float, default=0.0, help="asymmetric Gaussians per object Gaussian")
+    parser.add_argument("--surroundings", type=float, default=0.0,
+                        help="with --photos: the object stands on a slab of this many asymmetric Gaussians per "
+                             "object Gaussian, photographed from above it")
     parser.add_argument("--n", type=int, default=20000)
     parser.add_argument("--sh-degree", type=int, default=1)
     parser.add_argument("--preset", default=None, choices=PRESET_NAMES, help="default: the default preset")
@@ -115,16 +118,20 @@ def main() -> None:
                                        device="cpu", pictures=False)  # fmt: skip
     def label(kind: str, noise: float = 0.0) -> str:
         extra = (f", noise {noise:g}" if noise else "") + (f", clutter {args.clutter:g}" if args.clutter else "")
+        extra += f", on a slab of {args.surroundings:g}x its Gaussians" if args.surroundings else ""
         return f"synthetic {kind} ({args.capture}, n={args.n}, SH {args.sh_degree}{extra})"
 
     if args.photos and (args.noise != [0.0] or args.clutter):
         parser.error("--noise and --clutter shape the scenes scored against their own renders, not --photos")
+    if args.surroundings and not args.photos:
+        parser.error("--surroundings goes with --photos")
     if args.photos:
         from symgs_core.bench.photos import photographed
 
         jobs = [(label(k), photographed(k, args.work / k, n=args.n, photos=args.photos, tests=TEST_PHOTOS,
                                         resolution=args.photo_resolution, sh_degree=args.sh_degree,
-                                        capture=args.capture), args.work / k) for k in args.synthetic]  # fmt: skip
+                                        capture=args.capture, surroundings=args.surroundings), args.work / k)
+                for k in args.synthetic]  # fmt: skip
     else:
         jobs = [(label(k, noise), synthetic_scene(k, n=args.n, seed=0, sh_degree=args.sh_degree, capture=args.capture,
                                                   noise=noise, clutter=args.clutter).scene, None)

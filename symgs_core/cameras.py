@@ -6,6 +6,7 @@ A camera is built on the CPU (``HOST``) from host numbers; a job moves it to its
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import NamedTuple
@@ -20,6 +21,10 @@ NEAR_PLANE = 0.01  # camera-space depth below which Gaussians are not drawn (gsp
 # Cameras placed around a scene keep their near plane within this share of its radius: a scene in tiny units (a
 # small object in metres, or smaller) would otherwise lie behind it and render blank.
 NEAR_SHARE = 0.1
+# Optical axes cross where they leave the least-squares point well determined in every direction: the smallest
+# eigenvalue of their mean projector (I - d d^T) at least this. Cameras that all face one way (a forward-facing
+# capture) leave it near 0: they look at no one point. Cameras in one ring around an object give 0.5.
+CROSSING = 0.02
 
 
 @dataclass
@@ -189,3 +194,41 @@ def scene_cameras(
     """Cameras over the bounding sphere of a scene that came without images."""
     center, radius = scene_bounds(means.detach().cpu())
     return orbit_cameras(center, radius, count, width, height, fov_deg)
+
+
+@dataclass(frozen=True)
+class Focus:
+    """What a set of cameras looks at: a ball, ``centre`` [3] on the cameras' device, ``radius`` in world units."""
+
+    centre: Tensor
+    radius: float
+
+    def holds(self, means: Tensor) -> Tensor:
+        """Indices [K] of the points ``means`` [N, 3] inside the ball, ascending, on ``means``' device."""
+        centre = self.centre.to(device=means.device, dtype=means.dtype)
+        return torch.nonzero((means - centre).norm(dim=1) <= self.radius)[:, 0]
+
+
+def focus(cameras: Sequence[Camera]) -> Focus | None:
+    """The object a capture's cameras look at: the point nearest all their optical axes (least squares) and the
+    largest ball around it that the median camera frames whole (its depth times the tangent of its narrowest
+    half-field). None for fewer than two cameras, for axes that do not cross (``CROSSING``) or a point behind them."""
+    if len(cameras) < 2:
+        return None
+    R = torch.stack([c.R for c in cameras]).to(torch.float64)  # [C, 3, 3]
+    t = torch.stack([c.t for c in cameras]).to(torch.float64)  # [C, 3]
+    centres = -(R.transpose(1, 2) @ t[..., None])[..., 0]  # [C, 3]
+    axes = R[:, 2]  # [C, 3]: each camera's z (forward) in world coordinates
+    projectors = torch.eye(3, dtype=R.dtype, device=R.device) - axes[:, :, None] * axes[:, None, :]  # [C, 3, 3]
+    mean = projectors.mean(dim=0)
+    if float(torch.linalg.eigvalsh(mean)[0]) < CROSSING:
+        return None
+    point = torch.linalg.solve(mean, (projectors @ centres[..., None])[..., 0].mean(dim=0))
+    depth = ((point - centres) * axes).sum(dim=1)  # [C]
+    half = torch.tensor([min(c.cx, c.width - c.cx) / c.fx for c in cameras], dtype=R.dtype, device=R.device)
+    half = torch.minimum(half, torch.tensor([min(c.cy, c.height - c.cy) / c.fy for c in cameras], dtype=R.dtype,
+                                            device=R.device))  # fmt: skip
+    radius = float((depth * half).median())
+    if not (radius > 0 and math.isfinite(radius)):
+        return None
+    return Focus(point, radius)

@@ -29,6 +29,15 @@ Capture = Literal["twins", "independent"]
 Shape = Literal["box", "ellipsoid", "cylinder", "blob"]
 
 _X = torch.tensor([1.0, 0.0, 0.0])
+# Clutter fills the object's box and a tenth of its size around it.
+CLUTTER_PAD = 0.1
+# Surroundings: a slab the object stands on, as a table or a floor it was captured on, SURROUNDINGS_SPAN times the
+# object's width and depth, half its height thick, its top SURROUNDINGS_CONTACT of that height into the object's base,
+# its middle SURROUNDINGS_OFFSET of its width and depth away from the object's: the slab's own symmetries are not the
+# object's.
+SURROUNDINGS_SPAN = 4.0
+SURROUNDINGS_CONTACT = 0.05
+SURROUNDINGS_OFFSET = (0.3, 0.2)
 
 
 @dataclass(frozen=True)
@@ -387,11 +396,12 @@ def _nested_object(gen: torch.Generator, samples: torch.Generator, n: int, parts
     )
 
 
-def _clutter(gen: torch.Generator, count: int, means: Tensor, scales: Tensor, k: int) -> GaussianScene:
-    """Asymmetric extra Gaussians: uniform in the bounding box, random colours, sizes, rotations and opacities."""
+def _clutter(gen: torch.Generator, count: int, means: Tensor, scales: Tensor, k: int, pad: float) -> GaussianScene:
+    """Asymmetric extra Gaussians: uniform in the bounding box grown by ``pad`` of its size on every side, random
+    colours, sizes, rotations and opacities."""
     lo, hi = means.min(0).values, means.max(0).values
-    pad = 0.1 * (hi - lo)
-    lo, hi = lo - pad, hi + pad
+    margin = pad * (hi - lo)
+    lo, hi = lo - margin, hi + margin
     s_lo, s_hi = torch.quantile(scales.flatten()[:100_000], torch.tensor([0.05, 0.95])).tolist()
     return GaussianScene(
         means=lo + (hi - lo) * torch.rand(count, 3, generator=gen),
@@ -401,6 +411,21 @@ def _clutter(gen: torch.Generator, count: int, means: Tensor, scales: Tensor, k:
         sh_dc=(torch.rand(count, 3, generator=gen) * 0.96 + 0.02 - 0.5) / C0,
         sh_rest=0.05 * torch.randn(count, k, 3, generator=gen),
     )
+
+
+def surroundings_of(means: Tensor, scales: Tensor, count: int, gen: torch.Generator, k: int) -> GaussianScene:
+    """``count`` asymmetric Gaussians (``k`` higher SH coefficients) in a slab under the object of ``means`` [N, 3]
+    (and log-scales [N, 3]), in contact with it: what an object captured on a table stands among."""
+    lo, hi = means.min(0).values, means.max(0).values
+    size = hi - lo
+    middle = (lo + hi) / 2
+    half = torch.stack([SURROUNDINGS_SPAN * size[0], SURROUNDINGS_SPAN * size[1], 0.5 * size[2]]) / 2
+    top = lo[2] + SURROUNDINGS_CONTACT * size[2]
+    dx, dy = (2 * share * h for share, h in zip(SURROUNDINGS_OFFSET, half[:2], strict=True))
+    slab = torch.stack([middle[0] + dx, middle[1] + dy, top - half[2]])
+    # ``_clutter`` fills a box around points: the slab's two far corners.
+    corners = torch.stack([slab - half, slab + half])
+    return _clutter(gen, count, corners, scales, k, 0.0)
 
 
 def synthetic_scene(
@@ -414,6 +439,7 @@ def synthetic_scene(
     capture: Capture = "twins",
     noise: float = 0.0,
     clutter: float = 0.0,
+    surroundings: float = 0.0,
     pose: Pose | None = None,
     sample_seed: int | None = None,
 ) -> SyntheticScene:
@@ -426,7 +452,9 @@ def synthetic_scene(
     objects   symmetric objects of a "local" scene, 1..7
     capture   "twins": the halves are exact reflections; "independent": each half sampled on its own
     noise     std of positional noise on the object Gaussians, as a fraction of the object's size (about 1)
-    clutter   asymmetric extra Gaussians, as a fraction of the object Gaussians
+    clutter   asymmetric extra Gaussians, as a fraction of the object Gaussians, in the object's box
+    surroundings  asymmetric Gaussians the object stands among, as a multiple of the object Gaussians, in a slab
+              under it (``surroundings_of``; both kinds are ``clutter`` in the result)
     pose      a similarity transform applied to the whole scene (planes follow)
     sample_seed  draws the Gaussians from a generator of their own (None: ``seed``'s, after the design): the same
               ``seed`` then gives the same objects whatever ``n``, ``capture`` and ``sample_seed``, sampled anew, e.g.
@@ -438,8 +466,9 @@ def synthetic_scene(
         raise ValueError(f"a synthetic scene needs n >= 16 Gaussians, got {n}")
     if not 1 <= objects <= 7:
         raise ValueError(f"objects must be 1..7, got {objects}")
-    if noise < 0 or clutter < 0:
-        raise ValueError(f"noise and clutter must be non-negative, got noise={noise}, clutter={clutter}")
+    if noise < 0 or clutter < 0 or surroundings < 0:
+        raise ValueError(f"noise, clutter and surroundings must be non-negative, got noise={noise}, clutter={clutter}, "
+                         f"surroundings={surroundings}")  # fmt: skip
     k = SH_REST_COUNT[sh_degree]
     gen = torch.Generator().manual_seed(seed)
     samples = gen if sample_seed is None else torch.Generator().manual_seed(sample_seed)
@@ -484,7 +513,11 @@ def synthetic_scene(
         scene = scene.with_(means=scene.means + noise * torch.randn(len(scene), 3, generator=samples))
     n_object = len(scene)
     if clutter > 0:
-        extra = _clutter(samples, int(round(clutter * n_object)), scene.means, scene.scales, k)
+        extra = _clutter(samples, int(round(clutter * n_object)), scene.means, scene.scales, k, CLUTTER_PAD)
+        scene = GaussianScene.cat([scene, extra])
+    if surroundings > 0:
+        count = int(round(surroundings * n_object))
+        extra = surroundings_of(scene.means[:n_object], scene.scales[:n_object], count, samples, k)
         scene = GaussianScene.cat([scene, extra])
     # Shuffle so that no method can lean on the order the halves were built in.
     perm = torch.randperm(len(scene), generator=samples)

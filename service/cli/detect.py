@@ -21,6 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "searches what level l - 1 keeps. The time per step is printed.",
     )
     detect.add_argument("scene", type=Path, help="scene .ply (graphdeco layout, SH degree 0..3)")
+    detect.add_argument(
+        "--images",
+        type=Path,
+        help="the scene's posed photographs (NeRF-Synthetic or COLMAP folder): what their cameras look at is also "
+        "searched on its own, as a job with them does (an object among its surroundings)",
+    )
     detect.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     detect.add_argument(
         "--max-mirrors", type=int, default=4, metavar="K", help="mirror levels to search (default %(default)s)"
@@ -34,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_detect(args: argparse.Namespace) -> int:
     import torch
 
+    from symgs_core.cameras import focus
+    from symgs_core.datasets import DatasetError, dataset_frames
     from symgs_core.detect import DetectConfig, detect
     from symgs_core.ply import PlyError, load_scene
 
@@ -52,10 +60,17 @@ def run_detect(args: argparse.Namespace) -> int:
         scene = load_scene(args.scene)
     except PlyError as exc:
         raise CliError(f"cannot read {args.scene}: {error_text(exc)}") from None
+    aimed = None
+    if args.images is not None:
+        check_input("images folder", args.images, folder=True)
+        try:
+            aimed = focus([frame.camera for frame in dataset_frames(args.images, "train")])
+        except DatasetError as exc:
+            raise CliError(f"cannot read {args.images}: {error_text(exc)}") from None
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     with torch.no_grad():
-        mirrors = detect(scene, config)
+        mirrors = detect(scene, config, focus=aimed)
     detect_s = time.perf_counter() - t0
 
     steps: dict[str, float] = {}
@@ -66,6 +81,7 @@ def run_detect(args: argparse.Namespace) -> int:
     report = {
         "scene": str(args.scene),
         "gaussians": len(scene),
+        "focus": None if aimed is None else {"centre": aimed.centre.tolist(), "radius": aimed.radius},
         "mirrors": summaries,
         "timings": {"load": load_s, "detect": detect_s, **steps},
     }
@@ -73,6 +89,9 @@ def run_detect(args: argparse.Namespace) -> int:
         print(json.dumps(report, indent=2))
         return 0
     print(f"{args.scene}: {len(scene):,} Gaussians, {len(mirrors)} mirror(s) in {detect_s:.2f} s (load {load_s:.2f} s)")
+    if args.images is not None:
+        print("  the photographs' cameras look at " + ("no one point" if aimed is None else
+              f"({', '.join(f'{v:.4g}' for v in aimed.centre.tolist())}), radius {aimed.radius:.4g}"))  # fmt: skip
     for m in summaries:
         n = ", ".join(f"{v:+.4f}" for v in m["normal"])
         print(

@@ -11,6 +11,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
+from ..cameras import Focus
 from ..devices import HOST
 from ..mirror import Plane, canonical_sign
 from ..scene import GaussianScene
@@ -36,6 +37,9 @@ _SAME_ANGLE_DEG = 1.0  # a part's mirror this close to the whole set's is that m
 # A part holding more than this share of the working set is most of it: its mirror is significant in the whole set's
 # search already, and searching it again would double the time of a scene that is one object and scattered floaters.
 _LARGEST_PART = 0.5
+# The cameras' focus is searched on its own unless it holds nearly the whole working set (searched already): an object
+# may fill more than half of what its photographs frame, and its surroundings still hold most of the Gaussians there.
+_FOCUS_LEAVES = 0.1
 _HOPELESS_SE = 4.0  # a candidate whose sampled matched share is this many standard errors below min_coverage ...
 
 
@@ -50,14 +54,22 @@ class _Clock:
         self._t = now
 
 
-def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude: Sequence[Plane] = ()) -> list[Mirror]:
+def detect(
+    scene: GaussianScene,
+    config: DetectConfig | None = None,
+    *,
+    exclude: Sequence[Plane] = (),
+    focus: Focus | None = None,
+) -> list[Mirror]:
     """Mirrors of ``scene``, most dominant first, with the membership of each level's working set.
 
     Level 0 searches the whole scene; level l searches the left and out sets of level l - 1 (what the hierarchy
     keeps). Indices in every ``Mirror`` refer to ``scene``. Stops at ``max_mirrors``, when the working set is
     smaller than ``min_gaussians``, or when no candidate peak reaches ``min_coverage``. A plane found at one level,
     or listed in ``exclude`` (mirrors of earlier levels, when the caller runs one level at a time), is not reported
-    again: the parts of the scene it failed to match would otherwise make it come back. Non-finite Gaussians are
+    again: the parts of the scene it failed to match would otherwise make it come back. ``focus``: what the cameras
+    of the scene's photographs look at (``cameras.focus``), searched first and on its own: an object among its
+    surroundings holds too small a share of a capture to be significant in the whole set. Non-finite Gaussians are
     never members. Indices come back on the scene's device.
     """
     if not isinstance(scene, GaussianScene):
@@ -81,7 +93,9 @@ def detect(scene: GaussianScene, config: DetectConfig | None = None, *, exclude:
         if working.numel() < config.min_gaussians:
             break
         subset = light if working.numel() == len(light) else light.select(working)
-        found = _best(_detect_level(subset, config, level, known), _detect_in_parts(subset, config, level, known))
+        found = _detect_in_focus(subset, config, level, known, focus)
+        if found is None:
+            found = _best(_detect_level(subset, config, level, known), _detect_in_parts(subset, config, level, known))
         if found is None:
             break
         plane, votes, sides, timings = found
@@ -106,14 +120,34 @@ def _detect_in_parts(scene: GaussianScene, config: DetectConfig, level: int, kno
     frame = normalised_frame(scene.means.float(), config.radius_quantile)
     if frame is None:
         return []
-    out = []
     parts = spatial_components(scene.means, frame.radius, min_size=config.min_gaussians)
-    for part in [p for p in parts if p.numel() <= _LARGEST_PART * len(scene)][:_MAX_PARTS]:
-        found = _detect_level(scene.select(part), config, level, known)
-        if found is not None:
-            plane, votes, sides, timings = found
-            out.append((plane, votes, Sides(part[sides.left], part[sides.right]), timings))
-    return out
+    parts = [part for part in parts if part.numel() <= _LARGEST_PART * len(scene)][:_MAX_PARTS]
+    return [f for f in (_detect_in(scene, part, config, level, known) for part in parts) if f is not None]
+
+
+def _detect_in_focus(
+    scene: GaussianScene, config: DetectConfig, level: int, known: list[Plane], focus: Focus | None
+) -> Found | None:
+    """The mirror of the Gaussians in ``focus``, unless it holds nearly all of ``scene`` (searched as a whole). It
+    comes before the other mirrors of its level: the photographs are of it, while its surroundings (a table, a floor,
+    a wall) may have symmetries of their own that match more Gaussians; those are sought at the next levels."""
+    if focus is None:
+        return None
+    held = focus.holds(scene.means)
+    if not config.min_gaussians <= held.numel() <= (1.0 - _FOCUS_LEAVES) * len(scene):
+        return None
+    return _detect_in(scene, held, config, level, known)
+
+
+def _detect_in(
+    scene: GaussianScene, part: Tensor, config: DetectConfig, level: int, known: list[Plane]
+) -> Found | None:
+    """The mirror of ``scene``'s Gaussians ``part`` [P], its sides indexing ``scene``."""
+    found = _detect_level(scene.select(part), config, level, known)
+    if found is None:
+        return None
+    plane, votes, sides, timings = found
+    return plane, votes, Sides(part[sides.left], part[sides.right]), timings
 
 
 def _best(whole: Found | None, parts: list[Found]) -> Found | None:

@@ -20,7 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..cameras import scene_bounds
+from ..cameras import Focus, focus, scene_bounds
 from ..codec.steps import QuantSteps
 from ..config import CompressConfig
 from ..devices import HOST
@@ -327,9 +327,10 @@ class LevelSearch:
     views, the ``reference`` (the input's own fitting PSNR: +inf against renders of it, finite against
     photographs), its ``extent`` (radius), the plain codec's ``plain_bytes`` and ``steps`` (which the fine-tunes
     round to, straight-through, so that what they learn survives the codec; None: float32), its ``rate`` model
-    (None: none), and ``detect_from``: where ``source`` holds no mirror, the scene the first level's is sought in,
+    (None: none), ``detect_from``: where ``source`` holds no mirror, the scene the first level's is sought in,
     Gaussian for Gaussian ``source``'s (the upload, whose halves the whole fine-tune of ``refine`` trained apart: on
-    the CPU-trained lego detection finds no mirror in the fine-tuned scene and one in the upload)."""
+    the CPU-trained lego detection finds no mirror in the fine-tuned scene and one in the upload), and ``focus``:
+    what the photographs' cameras look at, searched on its own (``detect``; None: no photographs)."""
 
     source: GaussianScene
     views: ViewSet
@@ -340,6 +341,7 @@ class LevelSearch:
     steps: QuantSteps | None
     rate: Rate | None = None
     detect_from: GaussianScene | None = None
+    focus: Focus | None = None
 
 
 @dataclass(frozen=True)
@@ -376,9 +378,9 @@ def run_levels(
         level = state.normals.shape[0]
         t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        mirrors = detect(state.stored, detect_config, exclude=state.planes)
+        mirrors = detect(state.stored, detect_config, exclude=state.planes, focus=search.focus)
         if not mirrors and level == 0 and search.detect_from is not None:
-            mirrors = detect(search.detect_from, detect_config)
+            mirrors = detect(search.detect_from, detect_config, focus=search.focus)
         report.timed("detect", time.perf_counter() - t0)
         options = memberships(state, mirrors[0]) if mirrors else []
         attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,
@@ -458,6 +460,8 @@ def levels(fitted: Refined, job: Job) -> Levelled:
         fitted.source, fitted.views, fitted.floor, fitted.reference, radius, len(plain.archive), plain.steps,
         rate_model(plain, fitted.floor) if plain.rd is not None else None,
         fitted.upload if fitted.upload is not fitted.source else None,
+        # Photographs were taken by someone pointing at what they meant: their cameras frame the object.
+        focus([view.camera for view in fitted.views.train]) if math.isfinite(fitted.reference) else None,
     )
     checkpoint = None
     if job.checkpoint_dir is not None:

@@ -60,3 +60,30 @@ def test_an_unreadable_scene_names_the_code_the_api_would(scene_file, tmp_path: 
     cut.write_bytes(path.read_bytes()[:-100])
     assert main(["detect", str(cut)]) == 2
     assert capsys.readouterr().err.startswith(f"symgs detect: error: cannot read {cut}: truncated: ")
+
+
+def test_photographs_name_where_to_search_and_bad_ones_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from symgs_core.bench.photos import photographed
+
+    made = synthetic_scene("global", n=3000, seed=3, sh_degree=1, surroundings=20.0)
+    photos = tmp_path / "photos"
+    photographed("global", photos, n=200, photos=6, tests=1, resolution=32, sh_degree=0)  # cameras around the origin
+    path = tmp_path / "among.ply"
+    save_scene(made.scene, path)
+    assert main(["detect", str(path), "--json", "--max-mirrors", "1"]) == 0
+    planes = [(m["normal"][0], m["offset"]) for m in json.loads(capsys.readouterr().out)["mirrors"]]
+    assert not any(abs(n) > 0.999 and abs(g) < 0.02 for n, g in planes)  # 5% of the scene, touching its slab
+    assert main(["detect", str(path), "--json", "--max-mirrors", "1", "--images", str(photos)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["focus"]["radius"] > 0 and len(report["mirrors"]) == 1
+    first = report["mirrors"][0]
+    assert abs(first["normal"][0]) > 0.999 and abs(first["offset"]) < 0.02  # the planted plane, x = 0
+    assert main(["detect", str(path), "--images", str(photos)]) == 0
+    assert "the photographs' cameras look at (" in capsys.readouterr().out
+    assert main(["detect", str(path), "--images", str(tmp_path / "none")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["detect", str(path), "--images", str(tmp_path / "empty")]) == 2
+    assert "cannot read" in capsys.readouterr().err
