@@ -146,6 +146,11 @@ BENCHES: tuple[Bench, ...] = (
     Bench("pipeline-capture", ("benchmarks/bench_pipeline.py", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
                                "{data}/" + FOX_CAPTURE, "--work", "bench-out/pipeline-capture"),
           None, ("pipeline-capture",), data=True, env=PASSIVE, estimate="about 2 hours the first time (training)"),
+    # Where the photographs look: the same trained captures, and a generated object on a slab where the answer is known.
+    Bench("focus", ("benchmarks/bench_focus.py", "--generated", "--captures", "{data}/" + LEGO, "{data}/" + SNOWMIKU,
+                    "{data}/" + FOX_CAPTURE, "--work", "bench-out/pipeline-capture"),
+          ("benchmarks/bench_focus.py", "--generated", "--directions", "50", "--work", "{out}"), ("focus",),
+          data=True, env=PASSIVE, estimate="about 10 minutes"),
     Bench("paper", ("benchmarks/bench_paper.py", "--capture", "{data}/" + LEGO, "--work", "bench-out/pipeline-capture"),
           None, ("paper",), data=True, notes=True, env=PASSIVE,
           estimate="hours on 2 cores (two jobs with the photographs at 400 px); minutes on a GPU"),
