@@ -6,6 +6,8 @@ against itself); sizes are bytes, times seconds.
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from .params import DevicePreference, Preset
@@ -65,6 +67,11 @@ class LevelReport(BaseModel):
     gate: float | None = Field(None, description="colour-agreement gate of the membership (null: geometry alone)")
     iterations: int = Field(0, description="fine-tune steps run (it stops once a stretch stops gaining)")
     archive_bytes: int | None = Field(None, description="the whole archive with this level, when it held the floor")
+    found_in: Literal["scene", "part", "focus"] = Field(
+        "scene",
+        description="where its mirror was found: the whole scene, a spatially separate part of it, or the ball the "
+        "photographs' cameras look at",
+    )
 
 
 class Refinement(BaseModel):

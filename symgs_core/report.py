@@ -83,6 +83,7 @@ class LevelReport:
     gate: float | None = None  # colour-agreement gate of the membership tried (None: geometry alone)
     iterations: int = 0  # fine-tune steps run (it stops once a stretch stops gaining)
     archive_bytes: int | None = None  # the whole archive with this level, when it held the floor
+    found_in: str = "scene"  # "scene", "part" (a separate part of it) or "focus" (where the photographs look)
 
 
 @dataclass(frozen=True)

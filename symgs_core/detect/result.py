@@ -22,6 +22,8 @@ class Mirror:
     coverage  (|left| + |right|) / working set size
     level     0 for the first mirror; level l was searched in the left and out sets of level l - 1
     timings   seconds per step
+    found_in  where it was found: "scene" (the whole working set), "part" (a spatially separate part of it) or
+              "focus" (the ball the photographs' cameras look at)
     """
 
     plane: Plane
@@ -32,6 +34,7 @@ class Mirror:
     coverage: float
     level: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    found_in: str = "scene"
 
     @property
     def normal(self) -> tuple[float, float, float]:
@@ -53,4 +56,5 @@ class Mirror:
             "out": int(self.out.numel()),
             "coverage": self.coverage,
             "timings": dict(self.timings),
+            "found_in": self.found_in,
         }

@@ -93,9 +93,10 @@ def detect(
         if working.numel() < config.min_gaussians:
             break
         subset = light if working.numel() == len(light) else light.select(working)
-        found = _detect_in_focus(subset, config, level, known, focus)
+        found, where = _detect_in_focus(subset, config, level, known, focus), "focus"
         if found is None:
-            found = _best(_detect_level(subset, config, level, known), _detect_in_parts(subset, config, level, known))
+            found, where = _best(_detect_level(subset, config, level, known),
+                                 _detect_in_parts(subset, config, level, known))  # fmt: skip
         if found is None:
             break
         plane, votes, sides, timings = found
@@ -105,7 +106,7 @@ def detect(
         is_out[sides.left] = False
         coverage = (sides.left.numel() + sides.right.numel()) / working.numel()
         left, right, out = (working[s].to(device) for s in (sides.left, sides.right, is_out))
-        mirrors.append(Mirror(plane, votes, left, right, out, coverage, level, timings))
+        mirrors.append(Mirror(plane, votes, left, right, out, coverage, level, timings, where))
         known.append(plane)
         working = kept
     return mirrors
@@ -150,16 +151,18 @@ def _detect_in(
     return plane, votes, Sides(part[sides.left], part[sides.right]), timings
 
 
-def _best(whole: Found | None, parts: list[Found]) -> Found | None:
+def _best(whole: Found | None, parts: list[Found]) -> tuple[Found | None, str]:
     """Of the mirror found in the whole working set and those found in its separate parts, the one that matches the
-    most Gaussians: the larger first, whether a scene-wide mirror or a small object's own. A part's mirror that is
-    the whole set's mirror again gives way to it (its membership spans every part)."""
+    most Gaussians, and where it was found ("scene" or "part"): the larger first, whether a scene-wide mirror or a
+    small object's own. A part's mirror that is the whole set's mirror again gives way to it (its membership spans
+    every part)."""
     if whole is not None:
         parts = [p for p in parts if p[0].angle_deg(whole[0]) > _SAME_ANGLE_DEG]
-    options = ([whole] if whole is not None else []) + parts
+    options = [(whole, "scene")] if whole is not None else []
+    options += [(part, "part") for part in parts]
     if not options:
-        return None
-    return max(options, key=lambda found: found[2].left.numel() + found[2].right.numel())
+        return None, "scene"
+    return max(options, key=lambda option: option[0][2].left.numel() + option[0][2].right.numel())
 
 
 def _detect_level(

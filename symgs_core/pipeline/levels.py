@@ -73,6 +73,7 @@ class Membership:
     votes: float
     coverage: float
     gate: float | None
+    found_in: str = "scene"  # ``detect.Mirror.found_in``
 
 
 def consistent_bits(state: LevelState, plane: Plane, left: torch.Tensor,
@@ -127,7 +128,7 @@ def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 
     plane = mirror.plane
     left, right = consistent_bits(state, plane, mirror.left, mirror.right)
     coverage = (left.numel() + right.numel()) / max(len(state.stored), 1)
-    base = Membership(plane, left, right, float(mirror.votes), coverage, None)
+    base = Membership(plane, left, right, float(mirror.votes), coverage, None, mirror.found_in)
     mismatch, nearest = colour_mismatch(state.stored, plane, left, right)
     out = [base]
     for gate in GATES:
@@ -135,7 +136,7 @@ def memberships(state: LevelState, mirror) -> list[Membership]:  # noqa: ANN001 
         if gated_right.numel() == out[-1].right.numel():  # the gate changed nothing (twins agree everywhere)
             continue
         coverage = (gated_left.numel() + gated_right.numel()) / max(len(state.stored), 1)
-        out.append(Membership(plane, gated_left, gated_right, base.votes, coverage, gate))
+        out.append(Membership(plane, gated_left, gated_right, base.votes, coverage, gate, mirror.found_in))
     return out
 
 
@@ -376,71 +377,100 @@ def run_levels(
     spacing = _spacing(source.means) if config.max_levels else math.inf
     while not done and state.normals.shape[0] < config.max_levels:
         level = state.normals.shape[0]
-        t0 = time.perf_counter()
         report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
-        mirrors = detect(state.stored, detect_config, exclude=state.planes, focus=search.focus)
-        if not mirrors and level == 0 and search.detect_from is not None:
-            mirrors = detect(search.detect_from, detect_config, focus=search.focus)
-        report.timed("detect", time.perf_counter() - t0)
-        options = memberships(state, mirrors[0]) if mirrors else []
-        attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate, best_bytes=best_bytes,
-                                 photographs=math.isfinite(reference))  # fmt: skip
         done = True
-        for attempt in attempts:
-            membership, psnr_before = attempt.membership, attempt.psnr_before
+        # With photographs, the ball their cameras look at is searched first; where the mirror found there does not
+        # pay, the whole scene's (the object's with its surroundings, or a table's, a room's) is tried before the
+        # level is given up.
+        for aimed in [search.focus, None] if search.focus is not None else [None]:
             t0 = time.perf_counter()
-            candidate = apply_mirror(state, membership.plane, membership.left, membership.right)
-            skipped, cut = not attempt.pays(floor, best_bytes), False
-            if skipped or attempt.settled:
-                tuned, psnr_after, run = candidate.detach(), psnr_before, 0
-            else:
-                pace = None
-                if attempt.probed:
-                    share = len(candidate.stored) / max(len(state.stored), 1)
-                    pace = Pace(floor, search.rate, psnr, best_bytes * share, best_bytes)
-                tuned, psnr_after, run, cut = tune(state, candidate, membership, views, start=psnr_before, level=level,
-                                                   config=config, extent=search.extent, spacing=spacing,
-                                                   steps=search.steps, report=report, pace=pace)  # fmt: skip
-            report.timed("optimize", time.perf_counter() - t0)
-            archive_bytes, judged = None, None
-            if skipped:
-                accepted_now, reason = False, _unpaid(attempt, floor, best_bytes)
-            elif cut:
-                accepted_now = False
-                reason = (f"fine-tuned {run} steps to {psnr_after:.2f} dB, then stopped: at its last stretch's pace "
-                          f"it could not {'hold the floor' if psnr_after < floor else 'pay'} "
-                          f"(floor {floor:.2f} dB, {best_bytes:,} bytes to beat)")  # fmt: skip
-            elif psnr_after < floor:
-                accepted_now, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
-            else:
-                t1 = time.perf_counter()
-                report("levels", (level + 1) / config.max_levels, f"level {level}: encoding to compare", level)
-                judged = judge(tuned, psnr_after)
-                archive_bytes = len(judged.archive)
-                report.timed("judge", time.perf_counter() - t1)
-                accepted_now = archive_bytes < best_bytes
-                reason = (f"the archive shrinks from {best_bytes:,} to {archive_bytes:,} bytes" if accepted_now else
-                          f"within the floor, but the archive ({archive_bytes:,} bytes) is not smaller than without "
-                          f"this level ({best_bytes:,} bytes)")  # fmt: skip
-            if attempt.settled and not skipped:
-                reason += f"; not fine-tuned: as it starts it costs the codec under {SETTLED_COST:.1%} of its bytes"
-            records.append(LevelReport(
-                level=level, normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]),
-                                     float(tuned.normals[-1, 2])),
-                offset=float(tuned.offsets[-1]), votes=membership.votes, left=int(membership.left.numel()),
-                right=int(membership.right.numel()), coverage=membership.coverage, psnr_before=psnr_before,
-                psnr_after=psnr_after, stored_after=len(tuned.stored), seconds=time.perf_counter() - t0,
-                accepted=accepted_now, reason=reason, gate=membership.gate, iterations=run,
-                archive_bytes=archive_bytes,
-            ))  # fmt: skip
-            if accepted_now:
-                assert archive_bytes is not None  # only a judged level is accepted
-                state, psnr, best_bytes, best_fit, done = tuned, psnr_after, archive_bytes, judged, False
+            mirrors = detect(state.stored, detect_config, exclude=state.planes, focus=aimed)
+            if not mirrors and level == 0 and search.detect_from is not None:
+                mirrors = detect(search.detect_from, detect_config, focus=aimed)
+            report.timed("detect", time.perf_counter() - t0)
+            options = memberships(state, mirrors[0]) if mirrors else []
+            attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate,
+                                     best_bytes=best_bytes, photographs=math.isfinite(reference))  # fmt: skip
+            for attempt in attempts:
+                record, tuned, judged = _try(attempt, state, psnr, best_bytes, search=search, config=config,
+                                             judge=judge, report=report, level=level, spacing=spacing)  # fmt: skip
+                records.append(record)
+                if record.accepted:
+                    assert record.archive_bytes is not None  # only a judged level is accepted
+                    state, psnr, best_bytes, best_fit = tuned, record.psnr_after, record.archive_bytes, judged
+                    done = False
+                    break
+            if not done or not mirrors or mirrors[0].found_in != "focus":
                 break
         if checkpoint is not None:
             save_checkpoint(checkpoint, state, records, done, best_bytes)
     report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")
     return LevelOutcome(state, psnr, records, best_fit)
+
+
+def _try(
+    attempt: Attempt,
+    state: LevelState,
+    psnr: float,
+    best_bytes: int,
+    *,
+    search: LevelSearch,
+    config: CompressConfig,
+    judge: Judge,
+    report: Reporter,
+    level: int,
+    spacing: float,
+) -> tuple[LevelReport, LevelState, Fitted | None]:
+    """One membership applied to ``state`` (fitting PSNR ``psnr``), fine-tuned unless the plan says it cannot pay or
+    need not, and judged by its archive against ``best_bytes``: its record, the state it leaves and its archive (None
+    where not judged)."""
+    floor, views = search.floor, search.views
+    membership, psnr_before = attempt.membership, attempt.psnr_before
+    t0 = time.perf_counter()
+    candidate = apply_mirror(state, membership.plane, membership.left, membership.right)
+    skipped, cut = not attempt.pays(floor, best_bytes), False
+    if skipped or attempt.settled:
+        tuned, psnr_after, run = candidate.detach(), psnr_before, 0
+    else:
+        pace = None
+        if attempt.probed:
+            share = len(candidate.stored) / max(len(state.stored), 1)
+            pace = Pace(floor, search.rate, psnr, best_bytes * share, best_bytes)
+        tuned, psnr_after, run, cut = tune(state, candidate, membership, views, start=psnr_before, level=level,
+                                           config=config, extent=search.extent, spacing=spacing,
+                                           steps=search.steps, report=report, pace=pace)  # fmt: skip
+    report.timed("optimize", time.perf_counter() - t0)
+    archive_bytes, judged = None, None
+    if skipped:
+        accepted, reason = False, _unpaid(attempt, floor, best_bytes)
+    elif cut:
+        accepted = False
+        reason = (f"fine-tuned {run} steps to {psnr_after:.2f} dB, then stopped: at its last stretch's pace "
+                  f"it could not {'hold the floor' if psnr_after < floor else 'pay'} "
+                  f"(floor {floor:.2f} dB, {best_bytes:,} bytes to beat)")  # fmt: skip
+    elif psnr_after < floor:
+        accepted, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
+    else:
+        t1 = time.perf_counter()
+        report("levels", (level + 1) / config.max_levels, f"level {level}: encoding to compare", level)
+        judged = judge(tuned, psnr_after)
+        archive_bytes = len(judged.archive)
+        report.timed("judge", time.perf_counter() - t1)
+        accepted = archive_bytes < best_bytes
+        reason = (f"the archive shrinks from {best_bytes:,} to {archive_bytes:,} bytes" if accepted else
+                  f"within the floor, but the archive ({archive_bytes:,} bytes) is not smaller than without "
+                  f"this level ({best_bytes:,} bytes)")  # fmt: skip
+    if attempt.settled and not skipped:
+        reason += f"; not fine-tuned: as it starts it costs the codec under {SETTLED_COST:.1%} of its bytes"
+    record = LevelReport(
+        level=level, normal=(float(tuned.normals[-1, 0]), float(tuned.normals[-1, 1]), float(tuned.normals[-1, 2])),
+        offset=float(tuned.offsets[-1]), votes=membership.votes, left=int(membership.left.numel()),
+        right=int(membership.right.numel()), coverage=membership.coverage, psnr_before=psnr_before,
+        psnr_after=psnr_after, stored_after=len(tuned.stored), seconds=time.perf_counter() - t0,
+        accepted=accepted, reason=reason, gate=membership.gate, iterations=run, archive_bytes=archive_bytes,
+        found_in=membership.found_in,
+    )  # fmt: skip
+    return record, tuned, judged
 
 
 @dataclass(frozen=True)

@@ -81,26 +81,34 @@ def test_an_object_among_its_surroundings_is_found_where_the_cameras_look() -> N
     assert torch.isin(planted, members).float().mean() > 0.9
 
 
-def test_a_job_searches_where_its_photographs_look_and_only_with_photographs(tmp_path, monkeypatch) -> None:  # noqa: ANN001
-    from symgs_core import detect as detect_module
+def test_a_job_searches_where_its_photographs_look_then_the_whole_scene(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """With photographs the level first searches their focus; where the mirror found there cannot pay (here made
+    to drop two Gaussians), the whole scene's is tried at the same level. Without photographs there is no focus."""
+    from dataclasses import replace
+
     from symgs_core.bench.photos import photographed
     from symgs_core.config import CompressConfig
     from symgs_core.pipeline import compress
 
-    upload = photographed("global", tmp_path, n=400, photos=8, tests=2, resolution=48, sh_degree=0)
+    upload = photographed("global", tmp_path, n=600, photos=8, tests=2, resolution=48, sh_degree=0, capture="twins")
     seen: list[object] = []
 
     def spy(scene, config=None, *, exclude=(), focus=None):  # noqa: ANN001, ANN202
         seen.append(focus)
-        return detect(scene, config, exclude=exclude, focus=focus)
+        found = detect(scene, config, exclude=exclude, focus=focus)
+        if focus is None or not found:
+            return found
+        return [replace(found[0], left=found[0].left[:2], right=found[0].right[:2], found_in="focus")]
 
-    monkeypatch.setattr(detect_module, "detect", spy)
+    monkeypatch.setattr("symgs_core.detect.detect", spy)  # the package's name, which the level loop imports
     small = CompressConfig.for_preset(iterations=20, fit_views=3, eval_views=2, eval_resolution=48, max_levels=1,
                                       pictures=False)  # fmt: skip
-    compress(upload, images=tmp_path, config=small, charts=False)
-    assert seen and all(f is not None for f in seen)
+    report = compress(upload, images=tmp_path, config=small, charts=False).report
+    assert len(seen) == 2 and seen[0] is not None and seen[1] is None  # the focus, then the whole scene
     centre = upload.means.median(dim=0).values.double()
     assert float((seen[0].centre.cpu() - centre).norm()) < 0.3  # the generated object's middle, about 1 across
+    assert report.levels and all(level.found_in == "scene" for level in report.levels)
+    assert report.levels[0].right > 2  # the whole scene's membership, not the focus's two Gaussians
     seen.clear()
     compress(upload, config=small, charts=False)
     assert seen and all(f is None for f in seen)  # cameras placed around the scene say nothing of what matters
