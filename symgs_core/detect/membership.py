@@ -44,6 +44,13 @@ _DEEP = 16  # nearest Gaussians searched for one across the plane, for reflectio
 _ICP_WIDEN = 3.0  # the plane refinement starts with this many times the tolerance
 _ICP_SETTLED = 0.003  # ... and a stage ends once a step moves the plane less than this many typical spacings
 _SAMPLE = 20_000  # Gaussians on which the typical spacing, match rates and plane refinement are estimated
+# The plane's last polish climbs the matched share: tilts of this many radians and shifts of this share of the frame's
+# radius first, halved whenever no move gains, down to the finest tilt.
+_POLISH_TILT = math.radians(4.0)
+_POLISH_SHIFT = 0.02
+_POLISH_FINEST = math.radians(0.25)
+_POLISH_TRIES = 240  # planes the polish scores at most: each costs a sampled match
+_POLISH_GAIN_SE = 3.0  # ... and it is kept only when it matches this many standard errors more than where it began
 _PARALLEL_QUERIES = 10_000
 _TRAITS = 7  # scaled attributes per Gaussian: RGB, opacity, three sorted log-scales
 _MORTON_SPAN = 2.0  # the order covers coordinates within this many frame radii; beyond, it clamps
@@ -264,6 +271,41 @@ class Matcher:
                 if moved < _ICP_SETTLED * self.typical:
                     break
         return torch.from_numpy(n), g
+
+    def polish(self, normal: Tensor, offset: float) -> tuple[Tensor, float]:
+        """The plane near ``normal``, ``offset`` that matches the largest share of the sampled voxels
+        (``sampled_share``), by a pattern search: tilts about two axes of the plane and shifts along its normal, the
+        first that gains taken, the steps halved when none does. Iterated closest points settle where the pairs they
+        found agree, which on independently reconstructed halves may be a few degrees off the plane that matches the
+        most (on a trained lego, 5 degrees and 21% of its Gaussians matched against 50%): the share is what a
+        membership is made of, so it has the last word, where it gains more than the sample's noise
+        (``_POLISH_GAIN_SE``): on near twins the share is flat around the plane, whose closest points are more exact.
+        Returns the unit normal [3] (float64) and offset."""
+        start = (normal.detach().to(torch.float64).cpu(), float(offset))
+        n = start[0].numpy()
+        n = n / np.linalg.norm(n)
+        g = float(offset)
+        best, error = self.sampled_share(torch.from_numpy(n), g)
+        first = best
+        tilt, shift, tries = _POLISH_TILT, _POLISH_SHIFT, 0
+        while tilt >= _POLISH_FINEST and tries < _POLISH_TRIES:
+            u = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
+            u /= np.linalg.norm(u)
+            v = np.cross(n, u)
+            t = math.tan(tilt)
+            moves = [(n + t * u, g), (n - t * u, g), (n + t * v, g), (n - t * v, g), (n, g + shift), (n, g - shift)]
+            for m, h in moves:
+                m = m / np.linalg.norm(m)
+                share, tries = self._share(m, h), tries + 1
+                if share > best:
+                    n, g, best = m, h, share
+                    break
+            else:
+                tilt, shift = tilt / 2, shift / 2
+        return (torch.from_numpy(n), g) if best > first + _POLISH_GAIN_SE * error else start
+
+    def _share(self, n: np.ndarray, g: float) -> float:
+        return self.sampled_share(torch.from_numpy(n), g)[0]
 
     def _icp_step(self, idx: np.ndarray, n: np.ndarray, g: float, tau: np.ndarray) -> tuple[np.ndarray, float]:
         """One refinement step on Gaussians ``idx`` with tolerances ``tau``; the plane unchanged when fewer than 8
