@@ -238,3 +238,36 @@ def test_playbot_left_right_plane() -> None:
         abs(float(torch.tensor(m.normal, dtype=torch.float64) @ frame.centre.double()) - m.offset) < 0.01 * frame.radius
     )
     assert m.coverage >= 0.3
+
+
+def _matcher_of(scene: GaussianScene):  # noqa: ANN202
+    from symgs_core.detect.clusters import attributes
+    from symgs_core.detect.membership import Matcher
+    from symgs_core.detect.pairs import distinct_axes
+
+    config = DetectConfig()
+    frame = normalised_frame(scene.means.float(), config.radius_quantile)
+    assert frame is not None
+    matcher = Matcher(frame.to_local(scene.means.float()), attributes(scene), distinct_axes(scene, config.axis_ratio),
+                      tolerance=config.match_tolerance, attribute_weight=config.attribute_weight)  # fmt: skip
+    return frame, matcher
+
+
+def test_the_polish_climbs_to_the_plane_that_matches_most_and_leaves_the_best_one_alone() -> None:
+    """A plane a few degrees and cells off the planted one (where closest points settle on independently
+    reconstructed halves) is brought back by the polish; the planted plane itself, which matches the most up to the
+    sample's noise, is returned as it came."""
+    s = synthetic_scene("global", n=4000, seed=3, capture="independent", clutter=0.2, sh_degree=1)
+    frame, matcher = _matcher_of(s.scene)
+    planted = torch.tensor(s.planes[0].normal, dtype=torch.float64)
+    offset = (s.planes[0].offset - float(planted @ frame.centre.double())) / frame.radius
+    tilt = math.radians(5.0)
+    off = torch.nn.functional.normalize(planted + math.tan(tilt) * torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64),
+                                        dim=0)  # fmt: skip
+    start = matcher.sampled_share(off, offset + 0.03)[0]
+    normal, moved = matcher.polish(off, offset + 0.03)
+    back = math.degrees(math.acos(min(1.0, abs(float(normal @ planted)))))
+    assert back < 1.0 and abs(moved - offset) < 0.01
+    assert matcher.sampled_share(normal, moved)[0] > start + 0.05
+    same, kept = matcher.polish(planted, offset)
+    assert torch.equal(same, planted) and kept == offset
