@@ -51,8 +51,7 @@ def best_plane(scene, directions: int) -> tuple[float, float, int, int]:  # noqa
                      for g in offsets), reverse=True)  # fmt: skip
     best = (0.0, 0, 0)
     for _, i, g in scored[:REFIT]:
-        normal, offset = matcher.refine(*matcher.polish(*matcher.refine(normals[i], g, config.icp_iters)),
-                                        config.icp_iters)  # fmt: skip
+        normal, offset = matcher.settle(normals[i], g, config.icp_iters)
         sides = matcher.sides(normal, offset)
         coverage = (sides.left.numel() + sides.right.numel()) / len(scene)
         best = max(best, (coverage, int(sides.left.numel()), int(sides.right.numel())))

@@ -225,9 +225,8 @@ def focus(cameras: Sequence[Camera]) -> Focus | None:
         return None
     point = torch.linalg.solve(mean, (projectors @ centres[..., None])[..., 0].mean(dim=0))
     depth = ((point - centres) * axes).sum(dim=1)  # [C]
-    half = torch.tensor([min(c.cx, c.width - c.cx) / c.fx for c in cameras], dtype=R.dtype, device=R.device)
-    half = torch.minimum(half, torch.tensor([min(c.cy, c.height - c.cy) / c.fy for c in cameras], dtype=R.dtype,
-                                            device=R.device))  # fmt: skip
+    half = torch.tensor([min(min(c.cx, c.width - c.cx) / c.fx, min(c.cy, c.height - c.cy) / c.fy) for c in cameras],
+                        dtype=R.dtype, device=R.device)  # fmt: skip
     radius = float((depth * half).median())
     if not (radius > 0 and math.isfinite(radius)):
         return None

@@ -304,6 +304,16 @@ class Matcher:
                 tilt, shift = tilt / 2, shift / 2
         return (torch.from_numpy(n), g) if best > first + _POLISH_GAIN_SE * error else start
 
+    def settle(self, normal: Tensor, offset: float, icp_iters: int) -> tuple[Tensor, float]:
+        """The plane detection reports from a start near ``normal``, ``offset``: iterated closest points, the polish,
+        and closest points again where the polish moved it (it finds the basin of the largest matched share, closest
+        points its precise bottom). Returns the unit normal [3] (float64) and offset."""
+        if icp_iters:
+            normal, offset = self.refine(normal, offset, icp_iters)
+        polished = self.polish(normal, offset)
+        moved = polished[1] != offset or not torch.equal(polished[0], normal.to(polished[0]))
+        return self.refine(*polished, icp_iters) if icp_iters and moved else polished
+
     def _share(self, n: np.ndarray, g: float) -> float:
         return self.sampled_share(torch.from_numpy(n), g)[0]
 

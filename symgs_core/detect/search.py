@@ -208,14 +208,7 @@ def _detect_level(
                 x, attrs, axes, tolerance=config.match_tolerance, attribute_weight=config.attribute_weight
             )
             clock.lap("membership")
-        if config.icp_iters:
-            normal, offset = _canonical(*matcher.refine(normal, offset, config.icp_iters))
-        # The polish finds the basin of the largest matched share; the closest points, its precise bottom again.
-        polished = matcher.polish(normal, offset)
-        moved = polished[1] != offset or not torch.equal(polished[0], normal.to(polished[0]))
-        if config.icp_iters and moved:
-            polished = matcher.refine(*polished, config.icp_iters)
-        normal, offset = _canonical(*polished)
+        normal, offset = _canonical(*matcher.settle(normal, offset, config.icp_iters))
         clock.lap("refine")
         # ... is not matched in full: that costs as much as all the steps before, and most peaks of a level that has
         # no more mirrors match a few percent, which a sample of whole voxels tells for a few percent of the cost.
