@@ -347,13 +347,15 @@ class LevelSearch:
 
 @dataclass(frozen=True)
 class LevelOutcome:
-    """The state the levels end on, its fitting PSNR, a record of every level tried, and the judged archive of the
-    last level accepted in this run (None: no level accepted, or the state was resumed from a checkpoint)."""
+    """The state the levels end on, its fitting PSNR, a record of every level tried, the judged archive of the
+    last level accepted in this run (None: no level accepted, or the state was resumed from a checkpoint), and the
+    fitting PSNR every level held (``held_floor``)."""
 
     state: LevelState
     psnr: float
     records: list[LevelReport]
     fitted: Fitted | None
+    floor: float
 
 
 def run_levels(
@@ -405,7 +407,7 @@ def run_levels(
         if checkpoint is not None:
             save_checkpoint(checkpoint, state, records, done, best_bytes)
     report("levels", 1.0, f"{state.normals.shape[0]} mirror level(s) accepted")
-    return LevelOutcome(state, psnr, records, best_fit)
+    return LevelOutcome(state, psnr, records, best_fit, floor)
 
 
 def _try(
@@ -481,14 +483,24 @@ class Levelled(Refined):
     levels: LevelOutcome
 
 
+def held_floor(floor: float, plain: Fitted) -> float:
+    """The fitting PSNR every mirror level holds: the job's ``floor``, or the plain archive's own where that is
+    higher. A fitted plain archive lands above the floor where its steps are at their coarsest (after a fine-tune
+    against photographs the scene may stand dB above it): a mirror judged at the floor alone could then spend
+    fidelity the plain codec could not, and be smaller only for being worse. Levels are judged at equal fidelity.
+    A float32 plain archive (preset ``lossless``) is exact: there the floor is the budget mirrors may spend."""
+    return max(floor, plain.psnr) if plain.rd is not None else floor
+
+
 def levels(fitted: Refined, job: Job) -> Levelled:
     config, plain = job.config, fitted.plain
     # Levels are judged by fitted archives: a preset that fits nothing keeps none.
     max_levels = config.max_levels if config.use_mirrors and job.preset.fitted else 0
     _, radius = scene_bounds(fitted.source.means.detach().cpu(), fitted.source.scales)
+    floor = held_floor(fitted.floor, plain)
     search = LevelSearch(
-        fitted.source, fitted.views, fitted.floor, fitted.reference, radius, len(plain.archive), plain.steps,
-        rate_model(plain, fitted.floor) if plain.rd is not None else None,
+        fitted.source, fitted.views, floor, fitted.reference, radius, len(plain.archive), plain.steps,
+        rate_model(plain, floor) if plain.rd is not None else None,
         fitted.upload if fitted.upload is not fitted.source else None,
         # Photographs were taken by someone pointing at what they meant: their cameras frame the object.
         focus([view.camera for view in fitted.views.train]) if math.isfinite(fitted.reference) else None,
@@ -497,7 +509,8 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     if job.checkpoint_dir is not None:
         checkpoint = Checkpoint(job.checkpoint_dir / "levels.pt", scene_fingerprint(fitted.source, job.settings_digest))
     t0 = time.perf_counter()
-    outcome = run_levels(search, config=replace(config, max_levels=max_levels), judge=fitted.codec,
-                         report=job.reporter, checkpoint=checkpoint)  # fmt: skip
+    outcome = run_levels(search, config=replace(config, max_levels=max_levels),
+                         judge=replace(fitted.codec, floor=floor), report=job.reporter,
+                         checkpoint=checkpoint)  # fmt: skip
     job.reporter.timed("levels", time.perf_counter() - t0)
     return grown(fitted, Levelled, levels=outcome)

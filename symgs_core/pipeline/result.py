@@ -113,6 +113,7 @@ def report(evaluated: Evaluated, job: Job) -> CompressResult:
         config=job.config,
         notes=level_notes(outcome.records, len(source), photographs=job.photographs),
         refinement=evaluated.refinement,
+        psnr_mirror_floor=outcome.floor if outcome.records else None,
     )
     images: dict[str, bytes] = {}
     if job.config.pictures:

@@ -314,6 +314,11 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     read = mirrored.cameras.photographs
     assert read is not None and (read.width, read.height, read.scale) == (64, 64, 1.0)  # judged at their own size
     assert mirrored.accepted_levels and mirrored.fitting.worst >= mirrored.psnr_floor
+    # Judged at the plain archive's own fidelity, above the floor: the mirror is kept for being smaller, not for
+    # spending fidelity the plain codec could not.
+    assert plain.fitting.worst > plain.psnr_floor
+    assert mirrored.psnr_mirror_floor == pytest.approx(plain.fitting.worst)
+    assert mirrored.fitting.worst >= plain.fitting.worst
     assert mirrored.output_bytes < 0.8 * plain.output_bytes
     assert mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
     assert mirrored.notes == ()
@@ -323,6 +328,22 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
     assert not alone.accepted_levels and alone.levels
     (note,) = alone.notes
     assert "no mirror level paid against renders of the upload" in note and "--images" in note
+
+
+def test_a_mirror_is_held_to_the_plain_archives_fidelity_where_that_lies_above_the_floor(tmp_path):
+    """With a budget wider than the plain codec's coarsest steps can spend, its archive lands above the floor; a
+    mirror judged at the floor could then be smaller only for being worse. It is held to the plain archive's own
+    fitting PSNR instead, and still pays."""
+    upload = photographed("global", tmp_path, n=1500, photos=16, tests=4, resolution=64)
+    config = CompressConfig.for_preset("balanced", psnr_budget=4.0, iterations=20, fit_views=4, eval_views=4,
+                                       eval_resolution=64, max_levels=1, device="cpu", pictures=False)  # fmt: skip
+    mirrored = compress(upload, images=tmp_path, config=config).report
+    plain = compress(upload, images=tmp_path, config=replace(config, use_mirrors=False)).report
+    assert plain.fitting.worst > plain.psnr_floor + 0.3 and plain.psnr_mirror_floor is None
+    assert mirrored.psnr_mirror_floor == pytest.approx(plain.fitting.worst)
+    assert all(level.psnr_after >= mirrored.psnr_mirror_floor for level in mirrored.accepted_levels)
+    assert mirrored.accepted_levels and mirrored.fitting.worst >= plain.fitting.worst
+    assert mirrored.output_bytes < plain.output_bytes and mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
 
 
 def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
