@@ -61,8 +61,8 @@ def encode(levelled: Levelled, job: Job) -> Encoded:
     state = outcome.state if outcome.state.normals.shape[0] else plain_state
     if state is plain_state:
         fitted = levelled.plain
-    else:  # a state resumed from a checkpoint was not judged in this run
-        fitted = outcome.fitted or codec(state, outcome.psnr)
+    else:  # a state resumed from a checkpoint was not judged in this run: judged now, as the levels judge
+        fitted = outcome.fitted or replace(codec, floor=outcome.floor)(state, outcome.psnr)
     baseline = fitted_baseline(plain_state, fitted, codec.meta)
     accounted = stages(plain_state, state, fitted, reference=levelled.reference, mirrored_psnr=outcome.psnr,
                        meta=codec.meta, seconds=job.reporter.seconds, baseline=baseline)  # fmt: skip

@@ -205,6 +205,18 @@ def test_checkpoint_resume_gives_the_same_archive_without_recomputing(symmetric,
     assert uninterrupted.archive == symmetric_result.archive
 
 
+def test_a_resumed_quantised_job_judges_its_levels_at_the_fidelity_they_held(symmetric, tmp_path):
+    """Resumed after its levels, a job codes their state again, held to the plain archive's fitting PSNR as the
+    levels were (not the job's floor, which lies under it): the very bytes of the uninterrupted run."""
+    config = replace(FAST, preset="small", psnr_budget=3.0, max_levels=1)
+    first = compress(symmetric.scene, config=config, checkpoint_dir=tmp_path)
+    report = first.report
+    assert report.accepted_levels and report.psnr_mirror_floor is not None
+    assert report.psnr_mirror_floor > report.psnr_floor and report.fitting.worst >= report.psnr_mirror_floor
+    again = compress(symmetric.scene, config=config, checkpoint_dir=tmp_path)
+    assert "detect" not in again.report.seconds and again.archive == first.archive
+
+
 def test_checkpoint_of_other_inputs_is_never_trusted(symmetric, checkpoints, tmp_path):
     (tmp_path / "levels.pt").write_bytes((checkpoints / "levels.pt").read_bytes())
     other = compress(symmetric.scene, config=replace(FAST, max_levels=1), checkpoint_dir=tmp_path)

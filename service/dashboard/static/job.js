@@ -172,6 +172,9 @@ function showMetrics(job, report) {
   row(t, "PSNR, the object's own pixels", formatPsnr(report.fidelity.psnr_object));
   row(t, "SSIM", report.fidelity.ssim.toFixed(4));
   row(t, "PSNR floor (the preset's promise)", formatPsnr(report.psnr_floor));
+  if (report.psnr_mirror_floor != null && report.psnr_mirror_floor > report.psnr_floor) {
+    row(t, "PSNR every mirror level held (the plain archive's own)", formatPsnr(report.psnr_mirror_floor));
+  }
   const g = report.gaussians;
   row(t, "Gaussians: input / stored / decoded", `${g.input} / ${g.stored} / ${g.decoded}`);
   row(t, "Device", report.device);
