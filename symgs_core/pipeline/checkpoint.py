@@ -1,6 +1,6 @@
 """A job's checkpoints: the level loop's state, records and best size saved after every level, and the upload's own
-fine-tune against photographs (``refine``), each read back by a rerun of the same job (the same ``fingerprint`` of
-its inputs), so a job whose worker died resumes after its last level, its fine-tune done."""
+fine-tune against photographs (``refine``), each read back by a rerun of the same job (the same ``scene_fingerprint``
+of its inputs), so a job whose worker died resumes after its last level, its fine-tune done."""
 
 from __future__ import annotations
 
@@ -19,11 +19,6 @@ from ..scene import GaussianScene
 from .state import LevelState
 
 
-def fingerprint(scene: GaussianScene, config: CompressConfig, images: str | Path | None) -> str:
-    """The job's inputs, which a checkpoint must match to be resumed from."""
-    return scene_fingerprint(scene, settings_digest(config, images))
-
-
 def settings_digest(config: CompressConfig, images: str | Path | None) -> bytes:
     """What a job's checkpoints must match besides its scene: the settings and the photographs' contents (a job's
     stages take it once, ``Job.settings_digest``: a phone capture's photographs are read whole to hash them)."""
@@ -39,7 +34,8 @@ def settings_digest(config: CompressConfig, images: str | Path | None) -> bytes:
 
 
 def scene_fingerprint(scene: GaussianScene, settings: bytes) -> str:
-    """``fingerprint`` of ``scene`` with its job's ``settings_digest``."""
+    """The job's inputs, which a checkpoint must match to be resumed from: ``scene`` and its job's
+    ``settings_digest``."""
     h = hashlib.sha256()
     for t in scene.tensors().values():
         h.update(t.detach().cpu().contiguous().numpy().tobytes())

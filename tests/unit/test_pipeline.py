@@ -286,17 +286,17 @@ def test_a_job_changes_no_process_wide_state(symmetric):
 
 
 def test_a_resumed_job_recognises_its_dataset_wherever_it_lies(tmp_path) -> None:  # noqa: ANN001
-    from symgs_core.pipeline.checkpoint import fingerprint
+    from symgs_core.pipeline.checkpoint import settings_digest
 
-    scene, config = synthetic_scene("global", n=64, seed=1).scene, CompressConfig.for_preset()
+    config = CompressConfig.for_preset()
     here, there = tmp_path / "host_a" / "data", tmp_path / "host_b" / "elsewhere"
     for root in (here, there):
         (root / "images").mkdir(parents=True)
         (root / "images" / "r_0.png").write_bytes(b"\x89PNG pixels")
         (root / "transforms_train.json").write_text('{"frames": []}')
-    assert fingerprint(scene, config, here) == fingerprint(scene, config, there)
+    assert settings_digest(config, here) == settings_digest(config, there)
     (there / "images" / "r_0.png").write_bytes(b"\x89PNG other pixels")
-    assert fingerprint(scene, config, here) != fingerprint(scene, config, there)
+    assert settings_digest(config, here) != settings_digest(config, there)
 
 
 def test_the_fast_preset_encodes_once_at_fixed_steps_and_reports_what_it_measured() -> None:
