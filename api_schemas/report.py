@@ -192,7 +192,7 @@ class Report(BaseModel):
                              description="what the user could do for a better result (send the photographs, ...)")
     refinement: Refinement | None = Field(None, description="against photographs: the upload's own fine-tune before "
                                           "the mirrors (null: none was run)")  # fmt: skip
-    psnr_mirror_floor: float | None = Field(None, description="the fitting PSNR every mirror level held: psnr_floor, "
-                                            "or the plain archive's own where higher, so that a level is kept only "
-                                            "where the archive is smaller at no lower fidelity (null: no level was "
-                                            "tried)")  # fmt: skip
+    psnr_mirror_floor: float | None = Field(None, description="the fitting PSNR every mirror level held: psnr_floor "
+                                            "or, against photographs, the plain archive's own where higher, so that "
+                                            "a level is kept only where the archive is smaller at no lower fidelity "
+                                            "(null: no level was tried)")  # fmt: skip

@@ -178,8 +178,8 @@ class Report:
     config: CompressConfig
     notes: tuple[str, ...] = ()  # what the user could do for a better result (send the photographs, ...)
     refinement: Refinement | None = None  # against photographs: the upload's own fine-tune (None: none was run)
-    # The fitting PSNR every mirror level held: psnr_floor, or the plain archive's own where higher, so that a
-    # level is kept only where it is smaller at no lower fidelity (None: no level was tried)
+    # The fitting PSNR every mirror level held: psnr_floor or, against photographs, the plain archive's own where
+    # higher, so that a level is kept only where it is smaller at no lower fidelity (None: no level was tried)
     psnr_mirror_floor: float | None = None
 
     @property

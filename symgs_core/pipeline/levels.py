@@ -483,13 +483,19 @@ class Levelled(Refined):
     levels: LevelOutcome
 
 
-def held_floor(floor: float, plain: Fitted) -> float:
-    """The fitting PSNR every mirror level holds: the job's ``floor``, or the plain archive's own where that is
-    higher. A fitted plain archive lands above the floor where its steps are at their coarsest (after a fine-tune
-    against photographs the scene may stand dB above it): a mirror judged at the floor alone could then spend
-    fidelity the plain codec could not, and be smaller only for being worse. Levels are judged at equal fidelity.
-    A float32 plain archive (preset ``lossless``) is exact: there the floor is the budget mirrors may spend."""
-    return max(floor, plain.psnr) if plain.rd is not None else floor
+def held_floor(floor: float, plain: Fitted, *, photographs: bool) -> float:
+    """The fitting PSNR every mirror level holds: the job's ``floor`` or, against ``photographs``, the plain
+    archive's own where that is higher.
+
+    Against photographs the upload's own fine-tune (``refine``) leaves the scene above the floor, on the generated
+    captures by several dB, and where the plain codec's coarsest steps cannot spend that its archive stays above the
+    floor: a mirror judged at the floor alone could be smaller only for being worse, on photographs its reflection
+    never fitted. There levels are judged at the plain archive's fidelity. Against the upload's own renders both
+    archives are fitted to the same floor and land above it by the same search's margin (``encode._CLOSE``): holding
+    a mirror to the plain archive's landing as well would charge it that margin twice (a planted near-twin mirror
+    with as much clutter, BENCHMARKS "Twins with noise": 1.20x at the floor, 1.16x held). A float32 plain archive
+    (preset ``lossless``) is exact: there the floor is the budget mirrors may spend."""
+    return max(floor, plain.psnr) if photographs and plain.rd is not None else floor
 
 
 def levels(fitted: Refined, job: Job) -> Levelled:
@@ -497,7 +503,7 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     # Levels are judged by fitted archives: a preset that fits nothing keeps none.
     max_levels = config.max_levels if config.use_mirrors and job.preset.fitted else 0
     _, radius = scene_bounds(fitted.source.means.detach().cpu(), fitted.source.scales)
-    floor = held_floor(fitted.floor, plain)
+    floor = held_floor(fitted.floor, plain, photographs=job.photographs)
     search = LevelSearch(
         fitted.source, fitted.views, floor, fitted.reference, radius, len(plain.archive), plain.steps,
         rate_model(plain, floor) if plain.rd is not None else None,

@@ -205,18 +205,6 @@ def test_checkpoint_resume_gives_the_same_archive_without_recomputing(symmetric,
     assert uninterrupted.archive == symmetric_result.archive
 
 
-def test_a_resumed_quantised_job_judges_its_levels_at_the_fidelity_they_held(symmetric, tmp_path):
-    """Resumed after its levels, a job codes their state again, held to the plain archive's fitting PSNR as the
-    levels were (not the job's floor, which lies under it): the very bytes of the uninterrupted run."""
-    config = replace(FAST, preset="small", psnr_budget=3.0, max_levels=1)
-    first = compress(symmetric.scene, config=config, checkpoint_dir=tmp_path)
-    report = first.report
-    assert report.accepted_levels and report.psnr_mirror_floor is not None
-    assert report.psnr_mirror_floor > report.psnr_floor and report.fitting.worst >= report.psnr_mirror_floor
-    again = compress(symmetric.scene, config=config, checkpoint_dir=tmp_path)
-    assert "detect" not in again.report.seconds and again.archive == first.archive
-
-
 def test_checkpoint_of_other_inputs_is_never_trusted(symmetric, checkpoints, tmp_path):
     (tmp_path / "levels.pt").write_bytes((checkpoints / "levels.pt").read_bytes())
     other = compress(symmetric.scene, config=replace(FAST, max_levels=1), checkpoint_dir=tmp_path)
@@ -344,18 +332,33 @@ def test_against_photographs_a_capture_like_scene_keeps_its_mirror_and_shrinks(t
 
 def test_a_mirror_is_held_to_the_plain_archives_fidelity_where_that_lies_above_the_floor(tmp_path):
     """With a budget wider than the plain codec's coarsest steps can spend, its archive lands above the floor; a
-    mirror judged at the floor could then be smaller only for being worse. It is held to the plain archive's own
-    fitting PSNR instead, and still pays."""
-    upload = photographed("global", tmp_path, n=1500, photos=16, tests=4, resolution=64)
+    mirror judged at the floor could then be smaller only for being worse. Against photographs it is held to the
+    plain archive's own fitting PSNR instead, and still pays; a job resumed after its levels codes them held alike,
+    to the very bytes of the uninterrupted run."""
+    shots, checkpoints = tmp_path / "shots", tmp_path / "checkpoints"
+    upload = photographed("global", shots, n=1500, photos=16, tests=4, resolution=64)
     config = CompressConfig.for_preset("balanced", psnr_budget=4.0, iterations=20, fit_views=4, eval_views=4,
                                        eval_resolution=64, max_levels=1, device="cpu", pictures=False)  # fmt: skip
-    mirrored = compress(upload, images=tmp_path, config=config).report
-    plain = compress(upload, images=tmp_path, config=replace(config, use_mirrors=False)).report
+    mirrored = compress(upload, images=shots, config=config).report
+    plain = compress(upload, images=shots, config=replace(config, use_mirrors=False)).report
     assert plain.fitting.worst > plain.psnr_floor + 0.3 and plain.psnr_mirror_floor is None
     assert mirrored.psnr_mirror_floor == pytest.approx(plain.fitting.worst)
     assert all(level.psnr_after >= mirrored.psnr_mirror_floor for level in mirrored.accepted_levels)
     assert mirrored.accepted_levels and mirrored.fitting.worst >= plain.fitting.worst
     assert mirrored.output_bytes < plain.output_bytes and mirrored.fidelity.worst >= plain.fidelity.worst - 0.1
+    # At a budget of 1 dB the held PSNR binds the mirrored archive's steps (coded at the floor they would differ).
+    config = replace(config, psnr_budget=1.0)
+    first = compress(upload, images=shots, config=config, checkpoint_dir=checkpoints)
+    assert first.report.accepted_levels and first.report.psnr_mirror_floor > first.report.psnr_floor
+    again = compress(upload, images=shots, config=config, checkpoint_dir=checkpoints)
+    assert "detect" not in again.report.seconds and again.archive == first.archive
+
+
+def test_against_its_own_renders_a_mirror_is_held_to_the_floor_alone(symmetric):
+    """Without photographs both archives are fitted to one floor and land above it by the same search's margin: the
+    levels hold the floor, not the plain archive's landing as well."""
+    report = compress(symmetric.scene, config=replace(FAST, preset="small", psnr_budget=3.0, max_levels=1)).report
+    assert report.levels and report.psnr_mirror_floor == report.psnr_floor
 
 
 def test_a_scene_in_tiny_units_is_seen_and_compressed_as_at_its_own_size():
