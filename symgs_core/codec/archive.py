@@ -8,7 +8,8 @@ Header (JSON object, format version 1; every key required, no others):
     planes                  [{"normal": [x, y, z], "offset": g}], level 0 first; unit normals, finite
     sections                [{"name", "codec", "offset", "length", "raw_length", "crc32", "params"}], exactly
                             ``SECTION_NAMES`` in that order (versions 1 and 2: without ``classes``); offsets count
-                            from the end of the header
+                            from the end of the header; an attribute's entry may add "classes": false (version 6
+                            on): its Gaussians all take the section's own step, whatever their class
     meta                    object, the caller's metadata, returned as given
 Shapes follow from the header alone: attributes [N, ...] as in ``GaussianScene``, bits [N, len(planes)], classes [N].
 The bits are decoded first, then the classes, then each attribute with the classes (``codec.classes``).
@@ -19,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,7 @@ from ..cameras import COORDINATE_CONVENTION
 from ..mirror import Plane, expand_planes
 from ..scene import SH_REST_COUNT, GaussianScene
 from . import container
-from .classes import MAX_CLASS
+from .classes import MAX_CLASS, unwrapped
 from .errors import ArchiveError
 from .neighbours import Neighbours
 from .registry import ATTRIBUTE_NAMES, SECTION_NAMES, ArchiveCodec, archive_codec, section_codec
@@ -162,23 +163,23 @@ def encode_archive(contents: ArchiveContents, *, codec: str | ArchiveCodec = "lo
     classes = arrays["classes"] if arrays["classes"].any() else None
     neighbours = None
     for name in SECTION_NAMES:
-        attribute = name in ATTRIBUTE_NAMES
-        coded = codecs[name].encode(arrays[name], classes=classes if attribute else None, neighbours=neighbours)
+        coder, classed = unwrapped(codecs[name])
+        own = classes if classed and name in ATTRIBUTE_NAMES else None
+        coded = coder.encode(arrays[name], classes=own, neighbours=neighbours)
         if name == "means":  # what a reader finds its neighbours by: the positions as it decodes them
             shape = arrays[name].shape
-            points = codecs[name].decode(coded.payload, shape, coded.params, coded.raw_length, classes=classes)
+            points = coder.decode(coded.payload, shape, coded.params, coded.raw_length, classes=own)
             neighbours = Neighbours(points, classes)
-        table.append(
-            {
-                "name": name,
-                "codec": codecs[name].name,
-                "offset": offset,
-                "length": len(coded.payload),
-                "raw_length": coded.raw_length,
-                "crc32": container.crc32(coded.payload),
-                "params": coded.params,
-            }
-        )
+        entry = {
+            "name": name,
+            "codec": coder.name,
+            "offset": offset,
+            "length": len(coded.payload),
+            "raw_length": coded.raw_length,
+            "crc32": container.crc32(coded.payload),
+            "params": coded.params,
+        }
+        table.append(entry if classed else entry | {"classes": False})
         payloads.append(coded.payload)
         offset += len(coded.payload)
     header = {
@@ -261,6 +262,7 @@ class _Section:
     length: int
     raw_length: int
     params: dict[str, Any]
+    classed: bool = True  # whether its Gaussians take their step classes (``classes.OneStep``)
 
 
 def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimits, version: int) -> list[_Section]:
@@ -269,8 +271,11 @@ def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimi
         raise _bad(f"sections must list exactly {names} in that order")
     sections = []
     for entry in value:
-        _keys(entry, _SECTION_KEYS, f"section {entry['name']!r}")
         name = entry["name"]
+        _keys(entry, _SECTION_KEYS | ({"classes"} if "classes" in entry else set()), f"section {name!r}")
+        classed = entry.get("classes", True)
+        if "classes" in entry and (classed is not False or name not in ATTRIBUTE_NAMES or version < 6):
+            raise _bad(f"section {name!r}: classes {classed!r:.20} (only false, on an attribute, from version 6)")
         offset = _count(entry["offset"], f"section {name!r} offset")
         length = _count(entry["length"], f"section {name!r} length")
         raw_length = _count(entry["raw_length"], f"section {name!r} raw_length")
@@ -289,7 +294,7 @@ def _sections(value: Any, shapes: dict[str, tuple[int, ...]], limits: DecodeLimi
             raise _bad(f"section {name!r}: predicted symbols in an archive of format version {version}")
         codec = section_codec(_name(entry["codec"], f"section {name!r} codec"), name)
         codec.check(shapes[name], entry["params"], raw_length)
-        sections.append(_Section(name, codec, shapes[name], offset, length, raw_length, entry["params"]))
+        sections.append(_Section(name, codec, shapes[name], offset, length, raw_length, entry["params"], classed))
     return sections
 
 
@@ -301,7 +306,7 @@ def _layout(sections: list[_Section], body_start: int, size: int) -> list[_Secti
             kind = "overlaps the previous section" if s.start < expected else "leaves a gap"
             raise _bad(f"section {s.name!r} at offset {s.start} {kind} (expected offset {expected})")
         expected += s.length
-        placed.append(_Section(s.name, s.codec, s.shape, body_start + s.start, s.length, s.raw_length, s.params))
+        placed.append(replace(s, start=body_start + s.start))
     if body_start + expected > size:
         raise ArchiveError("truncated", f"{size} bytes: the sections end at byte {body_start + expected}")
     if body_start + expected < size:
@@ -371,6 +376,7 @@ def section_bytes(data: bytes, *, limits: DecodeLimits = DecodeLimits()) -> list
 def _decode_section(data: bytes, s: _Section, classes: np.ndarray | None = None,
                     neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
     payload = bytes(memoryview(data)[s.start : s.start + s.length])
+    classes = classes if s.classed else None
     try:
         values = s.codec.decode(payload, s.shape, s.params, s.raw_length, classes=classes, neighbours=neighbours)
     except ArchiveError:

@@ -12,6 +12,12 @@ Each class present is coded as a table of its own (a coarse class's symbols are 
 ascending order of class, so a reader splits a section by the classes it decoded first. The stored set is ordered
 by class within each level group (``order.coding_order``): the classes' own section costs a few bytes.
 
+A section may also put every Gaussian on its own step, whatever its class (``OneStep``; the archive's section entry
+says ``"classes": false``). Values already on a grid (a scene decoded from a quantised container) are coded exactly
+on that grid, and no class can be coarser there without an error no finer step removes: at the fidelity such
+scenes are compared at, their positions and log-scales want one step, while rotations, opacity and colour, off
+their grids, still gain from classes.
+
     payload   the classes as an entropy table [N, 1] (``entropy``); params {}; raw length N
 """
 
@@ -25,7 +31,16 @@ import numpy as np
 
 from .entropy import decode_table, encode_table
 from .errors import ArchiveError
-from .section import EncodedSection, SectionKind, check_params, join_parts, split_parts
+from .section import (
+    EncodedSection,
+    Estimate,
+    RateCodec,
+    SectionCodec,
+    SectionKind,
+    check_params,
+    join_parts,
+    split_parts,
+)
 
 if TYPE_CHECKING:
     from .neighbours import Neighbours
@@ -60,6 +75,41 @@ class StepClassCodec:
 
 
 CLASSES = StepClassCodec()
+
+
+@dataclass(frozen=True)
+class OneStep:
+    """``codec`` with every Gaussian on the section's own step, its class ignored: what a writer passes for such a
+    section (``archive.encode_archive`` writes ``codec`` and marks the section; readers decode it without classes)."""
+
+    codec: RateCodec
+
+    @property
+    def name(self) -> str:
+        return self.codec.name
+
+    @property
+    def kind(self) -> SectionKind:
+        return self.codec.kind
+
+    def encode(self, values: np.ndarray, *, classes: np.ndarray | None = None,
+               neighbours: Neighbours | None = None) -> EncodedSection:  # fmt: skip
+        return self.codec.encode(values, neighbours=neighbours)
+
+    def estimate(self, values: np.ndarray, *, classes: np.ndarray | None = None) -> Estimate:
+        return self.codec.estimate(values)
+
+    def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
+        self.codec.check(shape, params, raw_length)
+
+    def decode(self, payload: bytes, shape: tuple[int, ...], params: dict[str, Any], raw_length: int, *,
+               classes: np.ndarray | None = None, neighbours: Neighbours | None = None) -> np.ndarray:  # fmt: skip
+        return self.codec.decode(payload, shape, params, raw_length, neighbours=neighbours)
+
+
+def unwrapped(codec: SectionCodec) -> tuple[SectionCodec, bool]:
+    """The codec a section is written by, and whether its Gaussians take their step classes."""
+    return (codec.codec, False) if isinstance(codec, OneStep) else (codec, True)
 
 
 def multipliers(classes: np.ndarray | None, n: int) -> np.ndarray:

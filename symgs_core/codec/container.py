@@ -15,6 +15,7 @@ to about 0.7 kB, which is 0.2% of a 30,000-Gaussian archive. Version 3 adds a se
 classes (``classes``), which every quantising section reads. Version 4 adds a kind of entropy table (``entropy``:
 every symbol of a table as one column), which older readers could not read. Version 5 lets a quantising section
 code its symbols less their prediction from neighbours decoded before them (``neighbours``; params ``predict``).
+Version 6 lets an attribute section put every Gaussian on its own step, whatever its class (``classes.OneStep``).
 This module only frames and unframes;
 it knows nothing of Gaussians.
 """
@@ -32,10 +33,10 @@ from .errors import ArchiveError
 from .section import zstd_compress, zstd_decompress_exact
 
 MAGIC = b"\x89SYMGS\r\n"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 # 1: the header is plain JSON; 2: a zstd frame of it; 3: and the step classes' section; 4: and flat entropy tables;
-# 5: and symbols predicted from neighbours
-READ_VERSIONS = (1, 2, 3, 4, 5)
+# 5: and symbols predicted from neighbours; 6: and attribute sections on one step whatever the classes
+READ_VERSIONS = (1, 2, 3, 4, 5, 6)
 _PREFIX = struct.Struct("<8sIII")
 PREFIX_SIZE = _PREFIX.size  # 20
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from .classes import CLASSES
+from .classes import CLASSES, unwrapped
 from .errors import ArchiveError
 from .floats import FLOAT16, FLOAT32
 from .masks import MASKS
@@ -54,7 +54,10 @@ class ArchiveCodec:
             raise ValueError(
                 f"archive codec {self.name!r} covers sections {sorted(self.sections)}, expected {sorted(SECTION_NAMES)}"
             )
-        for section, codec in self.sections.items():
+        for section, given in self.sections.items():
+            codec, classed = unwrapped(given)
+            if not classed and section not in ATTRIBUTE_NAMES:
+                raise ValueError(f"archive codec {self.name!r}: section {section!r} has no step classes to ignore")
             if codec.kind != SECTION_KINDS[section]:
                 raise ValueError(
                     f"archive codec {self.name!r}: {codec.name!r} ({codec.kind}) cannot hold section {section!r}"

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..codec.classes import OneStep, unwrapped
 from ..codec.order import coding_order, grid_cells
 from ..codec.palette import MAX_PALETTE, RowWeights, ShPaletteCodec, distinct_rows
 from ..codec.quantize import (
@@ -175,6 +176,11 @@ class Choice:
         return sum(self.errors.values())
 
 
+def _one_step(make: Callable[[int], RateCodec]) -> Callable[[int], RateCodec]:
+    """The rungs of ``make`` with every Gaussian on the section's own step."""
+    return lambda k: OneStep(make(k))
+
+
 def palette_start(sh_rest: np.ndarray) -> int:
     """The palette size tried for ``sh_rest`` [N, K, 3]: every distinct non-zero row (exact) when they number fewer
     than ``_EXACT_PALETTE``, as in scenes decoded from SOG; else ``_PALETTE``."""
@@ -208,15 +214,21 @@ class RateDistortion:
         sample = np.linspace(0, n - 1, RATE_SAMPLE).round().astype(np.int64) if n > RATE_SAMPLE else None
         s, x = start, self.extent
         step = lambda base: (lambda k: base * 2.0 ** (k / 2))  # noqa: E731
-        ladder = lambda name, make, **kw: Ladder(name, arrays[name], make, self.sens, classes=coded, sample=sample,
-                                                 **kw)  # noqa: E731
+        ladder = lambda name, make, coded=coded: Ladder(name, arrays[name], make, self.sens, classes=coded,  # noqa: E731
+                                                        sample=sample)  # fmt: skip
+        makers: dict[str, Callable[[int], RateCodec]] = {
+            "means": lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)),
+            "quats": lambda k: RotationCodec(step(s.rotation)(k)),
+            "scales": lambda k: ScalarGridCodec(step(s.scale)(k)),
+            "opacities": lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)),
+            "sh_dc": lambda k: ShDcCodec(step(s.dc)(k)),
+        }
+        # With classes, each section may also put every Gaussian on its own step (``codec.classes.OneStep``): on
+        # values already on a grid, the finest steps, and the only ones a budget near lossless can take.
         self.ladders: dict[str, list[Ladder]] = {
-            "means": [ladder("means", lambda k: PositionCodec(step(s.position)(k) * max(x, 1e-12)))],
-            "quats": [ladder("quats", lambda k: RotationCodec(step(s.rotation)(k)))],
-            "scales": [ladder("scales", lambda k: ScalarGridCodec(step(s.scale)(k)))],
-            "opacities": [ladder("opacities", lambda k: OpacityCodec(min(step(s.opacity)(k), 0.5)))],
-            "sh_dc": [ladder("sh_dc", lambda k: ShDcCodec(step(s.dc)(k)))],
-        }  # fmt: skip
+            name: [ladder(name, make)] + ([] if coded is None else [ladder(name, _one_step(make), coded=None)])
+            for name, make in makers.items()
+        }
         self.ladders["sh_rest"] = self._sh_ladders(arrays["sh_rest"], sample, coded)
         self._at: dict[tuple[str, int], int] = {}
         self.lowest = RUNGS.start  # the finest rung any ladder takes: LOWEST once a budget needs more than RUNGS
@@ -226,8 +238,10 @@ class RateDistortion:
         """Per coefficient (in step classes), and, with higher bands, as a palette (weighted by each row's
         sensitivity, so rows the renders hardly see take coarser entry steps)."""
         bands = lambda k: tuple(b * 2.0 ** (k / 2) for b in self.start.sh)  # noqa: E731
-        ladders = [Ladder("sh_rest", sh_rest, lambda k: ShRestCodec(bands(k)), self.sens, classes=classes,
-                          exhaustive=False, sample=sample)]  # fmt: skip
+        per = lambda k: ShRestCodec(bands(k))  # noqa: E731
+        ladders = [Ladder("sh_rest", sh_rest, per, self.sens, classes=classes, exhaustive=False, sample=sample)]
+        if classes is not None:
+            ladders.append(Ladder("sh_rest", sh_rest, _one_step(per), self.sens, exhaustive=False, sample=sample))
         if self.stored.sh_degree:
             size = palette_start(sh_rest)
             weights = RowWeights.of(sh_rest, self.sens.per_gaussian("sh_rest").numpy())
@@ -246,16 +260,6 @@ class RateDistortion:
         back = torch.empty_like(self.order)
         back[self.order] = torch.arange(len(self.order), device=self.order.device)
         return back
-
-    def one_class(self) -> RateDistortion:
-        """The same model with every Gaussian in step class 0, for budgets the step classes cannot meet: a class's
-        steps are whole multiples of the section's, so on values already on a grid (a scene decoded from a quantised
-        format, where no finer step helps) the coarser classes' error is a floor no rung goes below."""
-        back = self._back
-        model = RateDistortion(self.stored.select(back), self.sens.select(back), self.start,
-                               classes=torch.zeros_like(self.classes))  # fmt: skip
-        model.lowest = self.lowest
-        return model
 
     def best(self, section: str, mu: float) -> tuple[int, int, Rung]:
         """The cheapest rung of ``section`` at price ``mu``: (ladder, rung index, rung)."""
@@ -361,7 +365,7 @@ class RateDistortion:
 
     def steps(self, choice: Choice) -> QuantSteps:
         """The steps the choice settled on, for the report."""
-        c = choice.codecs
+        c = {section: unwrapped(codec)[0] for section, codec in choice.codecs.items()}
         sh = getattr(c["sh_rest"], "steps", self.start.sh)
         palette = c["sh_rest"].size if isinstance(c["sh_rest"], ShPaletteCodec) else 0
         return replace(

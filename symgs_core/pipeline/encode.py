@@ -12,7 +12,7 @@ import functools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -20,11 +20,11 @@ from torch import Tensor
 
 from ..cameras import Camera, scene_bounds
 from ..codec import ArchiveContents, coding_order, decode_archive, encode_archive, expand_archive
-from ..codec.classes import CLASSES
+from ..codec.classes import CLASSES, unwrapped
 from ..codec.frames import canonical_frames
 from ..codec.masks import MASKS
 from ..codec.order import grid_cells
-from ..codec.registry import ArchiveCodec, archive_codec
+from ..codec.registry import ATTRIBUTE_NAMES, ArchiveCodec, archive_codec
 from ..codec.steps import QuantSteps
 from ..devices import HOST
 from ..metrics import mse_to_psnr, psnr_to_mse
@@ -64,9 +64,14 @@ def write_archive(
     """The archive of ``state`` in coding order, written by ``codec`` (an archive codec or a registered name), each
     stored Gaussian in its step class (``classes`` [|S|] int64; None: class 0)."""
     stored, bits = state.stored.detach().to(HOST), state.bits.to(HOST)  # the entropy coders run on the host
+    codec = archive_codec(codec)
+    if not any(unwrapped(c)[1] for name, c in codec.sections.items() if name in ATTRIBUTE_NAMES):
+        # No section takes the classes: they would only cost their order (``coding_order`` sorts by them first).
+        codec, classes = replace(codec, sections={k: unwrapped(c)[0] for k, c in codec.sections.items()}), None
     classes = None if classes is None else classes.to(HOST)
-    cells = grid_cells(archive_codec(codec).sections["means"], stored.means.numpy(),
-                       None if classes is None else classes.numpy().astype(np.uint8))  # fmt: skip
+    means, classed = unwrapped(codec.sections["means"])
+    cells = grid_cells(means, stored.means.numpy(),
+                       None if classes is None or not classed else classes.numpy().astype(np.uint8))  # fmt: skip
     perm = coding_order(stored, bits, cells, classes)
     ordered = None if classes is None else classes[perm]
     return encode_archive(ArchiveContents(stored.select(perm), state.planes, bits[perm], meta, ordered), codec=codec)
@@ -219,9 +224,6 @@ def fit_codec(
         if should_stop is not None and should_stop():
             break
         choice = rd.choose(target, keep=keep)
-        if choice.error > target and bool(rd.classes.any()):  # the classes' coarser steps are the floor
-            rd, measured, held, missed = rd.one_class(), {}, 0.0, math.inf
-            choice = rd.choose(target, keep=keep)
         if choice.error > target:
             break  # nothing quantised fits: float32 below
         key, improved = _identity(choice), False

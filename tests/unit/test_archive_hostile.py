@@ -116,7 +116,7 @@ def test_every_single_bit_flip_is_caught() -> None:
         for bit in range(8):
             flipped = bytearray(DATA)
             flipped[byte] ^= 1 << bit
-            if byte == 8 and flipped[8] == 4:  # version 5 less its lowest bit: 4 reads one without predictions alike
+            if byte == 8 and flipped[8] == 4:  # version 6 less its bit 1: 4 reads one without new fields alike
                 read, written = decode_archive(bytes(flipped)), decode_archive(DATA)
                 pairs = zip(read.stored.tensors().values(), written.stored.tensors().values())
                 assert all(torch.equal(a, b) for a, b in pairs) and torch.equal(read.bits, written.bits)
