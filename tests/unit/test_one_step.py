@@ -17,21 +17,14 @@ from symgs_core.pipeline.encode import write_archive
 from symgs_core.pipeline.state import LevelState
 from symgs_core.scene import GaussianScene
 from tests.unit.test_archive_hostile import code_of, frame, split
+from tests.unit.test_quantize import _random_scene
 
 N = 400
 EXTENT = 8.0
 
 
 def _scene() -> GaussianScene:
-    g = torch.Generator().manual_seed(5)
-    return GaussianScene(
-        means=torch.randn(N, 3, generator=g) * 2.0,
-        quats=torch.randn(N, 4, generator=g),
-        scales=torch.randn(N, 3, generator=g) - 4.0,
-        opacities=torch.randn(N, generator=g) * 3.0,
-        sh_dc=torch.randn(N, 3, generator=g),
-        sh_rest=torch.randn(N, 3, 3, generator=g) * 0.2,
-    )
+    return _random_scene(N, 1, seed=5)
 
 
 CLASSES = torch.arange(N) * 4 // N  # classes 0..3, in runs as the coding order leaves them
