@@ -192,7 +192,8 @@ def palette_start(sh_rest: np.ndarray) -> int:
 class RateDistortion:
     """Ladders of every attribute section of ``stored`` (in its coding order), priced by ``sens``; each Gaussian
     quantised in its step class (``classes`` [N] int64, in the input's order: ``Sensitivity.step_classes`` unless
-    given)."""
+    given), and, where there are classes, each section on one step as well (``OneStep``), so that a section whose
+    values already sit on a grid can be coded exactly on it while the others keep their classes."""
 
     def __init__(self, stored: GaussianScene, sens: Sensitivity, start: QuantSteps, *,
                  classes: Tensor | None = None) -> None:  # fmt: skip
