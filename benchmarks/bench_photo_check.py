@@ -46,7 +46,7 @@ def row(upload: str, photographs: str, scene, folder: Path, *, fit: int, resolut
         verdict = "accepted"
     except DatasetError as exc:
         verdict = exc.code
-    drawn = sum(int(m.sum()) for *_, m in views.fit) / sum(m.numel() for *_, m in views.fit)
+    drawn = sum(int(v.mask.sum()) for v in views.fit) / sum(v.mask.numel() for v in views.fit)
     margin = fitting.psnr_object - flat
     return (f"| {upload} | {photographs} | {drawn:.1%} | {fitting.psnr_object:.2f} | {flat:.2f} | {margin:+.2f} | "
             f"{verdict} |")  # fmt: skip
