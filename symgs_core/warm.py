@@ -5,7 +5,7 @@ or in the user's cache directory where those are read-only). Without this, a fre
 its first job compiling them: on one H200 host the first job's detection took 13.6 s and its levels 14.0 s, against
 0.7 s and 2.7 s for the next job on the same host, with the cache filled (BENCHMARKS "On a GPU").
 
-    python -m symgs_core.warm     # a worker image's build step; a worker runs it before it takes jobs
+    python -m symgs_core.warm     # a worker image's build step; on a host, once after installing
 """
 
 from __future__ import annotations

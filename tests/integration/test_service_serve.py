@@ -86,6 +86,16 @@ class _SlowHeaders(threading.Thread):
                 sock.close()
 
 
+def _closed_by_server(sock: socket.socket) -> bool:
+    """Whether the server closed ``sock``: an end of stream, or a reset where it closed the connection with bytes of
+    ours still unread in its socket (the kernel then answers with a reset: a connection the flood's bound closes in the
+    loop turn that accepted it, before anything was read)."""
+    try:
+        return sock.recv(4096) == b""
+    except ConnectionResetError:
+        return True
+
+
 def test_a_slow_header_flood_does_not_lock_a_real_client_out(tmp_path: Path) -> None:
     """400 connections sending their heads a line at a time against an API with 256 descriptors: the heads that do
     not arrive in time, and the connections past the bound on those waiting, are closed; /healthz answers at once."""
@@ -115,13 +125,13 @@ def test_a_slow_header_flood_does_not_lock_a_real_client_out(tmp_path: Path) -> 
         with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
             sock.sendall(HEAD_START)
             start = time.monotonic()
-            assert sock.recv(4096) == b""
+            assert _closed_by_server(sock)
             assert time.monotonic() - start < 4
         with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
             sock.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: api\r\nAuthorization: Bearer k1\r\nContent-Length: 1000\r\n"
                          b"Content-Type: multipart/form-data; boundary=b\r\n\r\n--b\r\n")  # fmt: skip
             start = time.monotonic()
-            assert sock.recv(4096) == b""
+            assert _closed_by_server(sock)
             assert time.monotonic() - start < 4
     finally:
         flood.halt.set()
