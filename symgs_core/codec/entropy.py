@@ -86,16 +86,35 @@ class _Transformed:
     bits: float  # their order-0 entropy (inf without a histogram)
 
 
+def _delta(column: np.ndarray) -> np.ndarray:
+    """Each value less the one before it (the first less 0), as ``np.diff`` with a 0 prepended, in one array the
+    column's size (``np.diff`` first copies the column with the 0 in front)."""
+    out = np.empty(column.shape, dtype=np.result_type(column.dtype, np.int64))
+    if len(column):
+        out[0] = column[0]
+        np.subtract(column[1:], column[:-1], out=out[1:], dtype=out.dtype)
+    return out
+
+
 def _transforms(column: np.ndarray) -> list[_Transformed]:
     """The column raw and differenced, less the one whose order-0 entropy is more than ``TRANSFORM_MARGIN`` above
     the other's: neither coder makes up such a gap (on the shared scenes' tables the transform that coded smallest
     never had an entropy more than 3% above the other's), and it halves the coding of most columns."""
     out = []
     for transform in (RAW, DELTA):
-        values = column if transform == RAW else np.diff(column, prepend=np.int64(0))
+        values = column if transform == RAW else _delta(column)
         offset = int(values.min()) if len(values) else 0
-        symbols = values - offset
+        if transform == RAW:
+            symbols = values - offset
+        else:
+            symbols = values
+            symbols -= offset
+        del values
         top = int(symbols.max()) if len(symbols) else 0
+        if top < 1 << 32:
+            # Kept at the width their stream has: a flat SH table of a million Gaussians is 21M symbols, 168 MB a
+            # transform as int64, and both transforms of both ways of a table are held at once.
+            symbols = symbols.astype(_WIDTHS[_width(top)])
         counts, bits = None, math.inf
         if 0 < top < MAX_ALPHABET:  # constriction needs two symbols or more
             counts = np.bincount(symbols, minlength=top + 1)
@@ -113,7 +132,7 @@ def _column(column: np.ndarray, level: int, raw_zstd: bool = True) -> bytes:
     for t in _transforms(column):
         head = bytes([t.transform]) + varint(_zigzag(t.offset))
         if raw_zstd or t.transform != RAW:
-            frame = zstd_compress(t.symbols.astype(_WIDTHS[_width(t.top)]), level)
+            frame = zstd_compress(t.symbols.astype(_WIDTHS[_width(t.top)], copy=False), level)
             out.append(bytes([ZSTD]) + head + bytes([_width(t.top)]) + varint(len(frame)) + frame)
         if t.counts is not None:
             hist = zstd_compress(write_varints(t.counts), level)
@@ -172,7 +191,7 @@ def _column_bits(column: np.ndarray, level: int, raw_zstd: bool = True) -> float
     best = math.inf
     for t in _transforms(column):
         if raw_zstd or t.transform != RAW:
-            frame = zstd_compress(t.symbols.astype(_WIDTHS[_width(t.top)]), level)
+            frame = zstd_compress(t.symbols.astype(_WIDTHS[_width(t.top)], copy=False), level)
             best = min(best, 8.0 * (len(frame) + _HEAD))
         if t.counts is not None:
             hist = _histogram_bytes(t.counts, level)

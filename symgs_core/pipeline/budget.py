@@ -91,7 +91,10 @@ class Ladder:
         self.section, self.values, self.make, self.sens, self.classes = section, values, make, sens, classes
         self.exhaustive = exhaustive
         self._rungs: dict[int, Rung] = {}
-        self._sample = None if sample is None else (values[sample], sens.select(torch.from_numpy(sample)),
+        # The sample's weights of this section alone: a rung measures one section, and eleven ladders each holding
+        # every section's weights of 65k Gaussians took 350 MB at SH degree 3.
+        own = Sensitivity({section: sens.weights[section]})
+        self._sample = None if sample is None else (values[sample], own.select(torch.from_numpy(sample)),
                                                     None if classes is None else classes[sample])  # fmt: skip
         self._scale: tuple[float, float] | None = None  # (bits, error): the whole set's real figures over estimates
         self._groups: tuple[np.ndarray, Sensitivity, GroupedError] | None = None  # (index, sens, what they give)

@@ -13,7 +13,7 @@ from symgs_core.codec.classes import OneStep
 from symgs_core.codec.steps import QuantSteps
 from symgs_core.config import floor_for_budget
 from symgs_core.metrics import mse_to_psnr, psnr_to_mse
-from symgs_core.pipeline import encode
+from symgs_core.pipeline import budget, encode
 from symgs_core.pipeline.budget import LOWEST, RUNGS, RateDistortion
 from symgs_core.pipeline.encode import canonical, fit_codec, rate_model, write_archive
 from symgs_core.pipeline.sensitivity import Sensitivity, sensitivity
@@ -49,6 +49,29 @@ def test_a_ladder_finds_the_cheapest_rung_at_every_price(setting) -> None:  # no
                 k, rung = ladder.best(mu, start)
                 assert rung.bits + mu * rung.error == pytest.approx(rungs[best].bits + mu * rungs[best].error), (
                     section, mu, start)
+
+
+def test_a_sampled_ladder_keeps_its_own_sections_weights_alone_and_prices_as_the_whole_set(
+    setting, monkeypatch: pytest.MonkeyPatch  # noqa: ANN001
+) -> None:
+    """Past ``RATE_SAMPLE`` Gaussians a ladder measures its rungs on a sample of them: it keeps the sample's weights of
+    its own section only (every section's, in each of eleven ladders, took 350 MB at 1M Gaussians with SH degree 3),
+    and its preset rung is priced at the whole set's error."""
+    state, _, weights = setting
+    whole = RateDistortion(state.stored, weights, QuantSteps())
+    monkeypatch.setattr(budget, "RATE_SAMPLE", 300)
+    sampled = RateDistortion(state.stored, weights, QuantSteps())
+    seen = set()
+    for section, ladders in sampled.ladders.items():
+        for ladder in ladders:
+            if ladder._sample is not None:
+                assert set(ladder._sample[1].weights) == {section}
+                assert len(ladder._sample[0]) == 300
+                seen.add(section)
+    assert seen == set(sampled.ladders)
+    for section in ("means", "quats", "scales", "opacities", "sh_dc", "sh_rest"):
+        assert sampled.ladders[section][0].rung(0).error == pytest.approx(whole.ladders[section][0].rung(0).error,
+                                                                         rel=1e-9)  # fmt: skip
 
 
 def test_below_its_rungs_a_ladder_walks_only_where_it_is_let(setting) -> None:  # noqa: ANN001
