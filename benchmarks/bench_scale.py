@@ -4,7 +4,8 @@ PlayCanvas splat-transform writing `.spz` of the same file in the same run.
 Scenes (SH degree 2): the playbot capture at full detail, 500k Gaussians (the shared SOG decoded by splat-transform);
 seeded random subsets of it (125k, 250k); copies of it turned about the vertical axis and set side by side, two
 abreast (1M: two, 2M: four, 4M: eight, 6M: twelve; positions, rotations and SH turn with them). Each is written as a
-graphdeco `.ply` into ``--work``.
+graphdeco `.ply` into ``--work``. With ``--trainer`` each is made as a trainer writes its scenes
+(``as_trained``): every value moved off the SOG's grids by a small seeded jitter, and a third SH band added.
 
 Every run is its own process, one after the other: `symgs compress` (preset balanced unless ``--preset``), then
 splat-transform writing `.spz` v4 (its default) and v3 from the same `.ply`, then, unless ``--no-fidelity``,
@@ -99,9 +100,10 @@ def splat_transform() -> str:
         sys.exit(f"splat-transform: {exc}")
 
 
-def setup(work: Path, labels: list[str], sog: Path) -> tuple[str, dict[str, Path]]:
+def setup(work: Path, labels: list[str], sog: Path, trainer: bool) -> tuple[str, dict[str, Path]]:
     """splat-transform, the scenes' files and compiled kernels, from a child process (see the module's notes)."""
-    argv = [sys.executable, __file__, "--setup", "--work", str(work), "--sizes", ",".join(labels), "--sog", str(sog)]
+    argv = [sys.executable, __file__, "--setup", "--work", str(work), "--sizes", ",".join(labels), "--sog", str(sog),
+            *(["--trainer"] if trainer else [])]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     done = subprocess.run(argv, check=True, stdout=subprocess.PIPE, text=True, env=env)
     found = json.loads(done.stdout.strip().splitlines()[-1])
@@ -124,9 +126,30 @@ def warm_up(work: Path) -> None:
     subprocess.run(cmd, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
 
 
-def prepare(work: Path, labels: list[str], exe: str, sog: Path) -> dict[str, Path]:
+def as_trained(scene, seed: int):  # noqa: ANN001, ANN201 - a GaussianScene (torch is imported in the child only)
+    """``scene`` as a trainer writes it, float32 on no grid and with SH degree 3: each value moved by a seeded
+    jitter small against what it holds (positions by 1e-3 of the scene's extent, rotations by 0.02, log-scales by
+    0.05, opacity logits by 0.1, DC colour by 0.01, the SH bands by 0.005), and a third band drawn with 0.6 of the
+    second's mean magnitude per Gaussian and channel."""
+    import torch
+
+    from symgs_core.scene import GaussianScene
+
+    g = torch.Generator().manual_seed(seed)
+    jitter = lambda x, sd: x + sd * torch.randn(x.shape, generator=g)  # noqa: E731
+    extent = float((scene.means.max(dim=0).values - scene.means.min(dim=0).values).max())
+    rest = scene.sh_rest
+    band3 = torch.randn((len(scene), 7, 3), generator=g) * 0.6 * rest[:, 3:8].abs().mean(dim=1, keepdim=True)
+    return GaussianScene(
+        means=jitter(scene.means, 1e-3 * extent), quats=jitter(scene.quats, 0.02), scales=jitter(scene.scales, 0.05),
+        opacities=jitter(scene.opacities, 0.1), sh_dc=jitter(scene.sh_dc, 0.01),
+        sh_rest=torch.cat([jitter(rest, 0.005), band3], dim=1),
+    )  # fmt: skip
+
+
+def prepare(work: Path, labels: list[str], exe: str, sog: Path, trainer: bool) -> dict[str, Path]:
     """The scenes' `.ply` files, made once and kept in ``work``."""
-    paths = {label: work / f"playbot_{label}.ply" for label in labels}
+    paths = {label: work / f"playbot_{label}{'_trainer' if trainer else ''}.ply" for label in labels}
     if all(p.exists() for p in paths.values()):
         return paths
     import torch
@@ -159,6 +182,8 @@ def prepare(work: Path, labels: list[str], exe: str, sog: Path) -> dict[str, Pat
                 pose = Pose((math.cos(turn / 2), 0.0, math.sin(turn / 2), 0.0), (GRID * (i % 2), 0.0, GRID * (i // 2)))
                 copies.append(apply_pose(base, pose))
             scene = GaussianScene.cat(copies)
+        if trainer:
+            scene = as_trained(scene, seed=n)
         save_scene(scene, path)
         print(f"wrote {path} ({len(scene):,} Gaussians)", flush=True)
     return paths
@@ -349,6 +374,8 @@ def main() -> None:
     parser.add_argument("--no-fidelity", action="store_true", help="skip `symgs evaluate` of archive and .spz")
     parser.add_argument("--no-equal", action="store_true",
                         help="no second run at the .spz's PSNR where our archive scores below it")
+    parser.add_argument("--trainer", action="store_true",
+                        help="scenes as a trainer writes them: off the SOG's grids, SH degree 3 (``as_trained``)")
     parser.add_argument("--table-only", action="store_true", help="print the table and chart of scale.json")
     parser.add_argument("--setup", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -363,12 +390,12 @@ def main() -> None:
     rows = {r["label"]: r for r in json.loads(results.read_text())} if results.exists() else {}
     if args.setup:
         exe = splat_transform()
-        paths = prepare(args.work, labels, exe, args.sog)
+        paths = prepare(args.work, labels, exe, args.sog, args.trainer)
         warm_up(args.work)
         print(json.dumps({"exe": exe, "paths": {label: str(p) for label, p in paths.items()}}))
         return
     if not args.table_only:
-        exe, paths = setup(args.work, labels, args.sog)
+        exe, paths = setup(args.work, labels, args.sog, args.trainer)
         for label in labels:
             row = measure(label, paths[label], args, exe)
             rows[label] = row

@@ -236,6 +236,7 @@ def fit_codec(
             archive = write_archive(candidate, meta, codec, rd.classes[kept])
             decoded = expand_archive(decode_archive(archive)).to(state.stored.device)
             measured[key] = evaluate(decoded, fit, background)
+            del decoded  # each check's scenes go before the next is made: at 1M Gaussians with SH 3, 220 MB each
             tries.append({"predicted_psnr": mse_to_psnr(psnr_to_mse(psnr_before) + pruned + choice.error),
                           "psnr": measured[key].worst, "bytes": len(archive)})  # fmt: skip
             if measured[key].worst >= floor and (best is None or len(archive) < len(best.archive)):
@@ -248,6 +249,7 @@ def fit_codec(
                               removed=len(state.stored) - len(stored), dropped_bands=dropped, rd=rd, allowed=allowed,
                               fitting=measured[key])  # fmt: skip
                 improved = True
+            del candidate, stored
         excess = psnr_to_mse(measured[key].worst) - psnr_to_mse(psnr_before)
         if measured[key].worst >= floor:
             held = max(held, target)
