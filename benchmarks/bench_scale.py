@@ -36,6 +36,10 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # torch is imported in the child that makes the scenes only
+    from symgs_core.scene import GaussianScene
 
 ROOT = Path(__file__).resolve().parents[1]
 SOG = ROOT.parent / "shared/data/playbot_cc_by_sa3d/sog_lod0_500k/meta.json"
@@ -126,7 +130,7 @@ def warm_up(work: Path) -> None:
     subprocess.run(cmd, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True)
 
 
-def as_trained(scene, seed: int):  # noqa: ANN001, ANN201 - a GaussianScene (torch is imported in the child only)
+def as_trained(scene: GaussianScene, seed: int) -> GaussianScene:
     """``scene`` as a trainer writes it, float32 on no grid and with SH degree 3: each value moved by a seeded
     jitter small against what it holds (positions by 1e-3 of the scene's extent, rotations by 0.02, log-scales by
     0.05, opacity logits by 0.1, DC colour by 0.01, the SH bands by 0.005), and a third band drawn with 0.6 of the

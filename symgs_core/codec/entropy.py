@@ -109,7 +109,7 @@ def _transforms(column: np.ndarray) -> list[_Transformed]:
         else:
             symbols = values
             symbols -= offset
-        del values
+        del values  # else the delta's int64 array outlives its narrowed symbols
         top = int(symbols.max()) if len(symbols) else 0
         if top < 1 << 32:
             # Kept at the width their stream has: a flat SH table of a million Gaussians is 21M symbols, 168 MB a
