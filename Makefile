@@ -17,8 +17,11 @@ $(VENV)/.installed: pyproject.toml
 demo: install
 	$(VENV)/bin/symgs demo
 
+# Two test processes side by side (pytest-xdist), each file whole in one of them so that its fixtures are built once:
+# one process keeps about one core busy, its time going to small tensors and to waiting on its child processes.
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # mypy's settings (the pydantic plugin, per-package overrides) are in pyproject.toml's [tool.mypy]; the packages it
 # checks are the ones named here.
