@@ -10,6 +10,8 @@ import uuid
 
 from celery import signals
 
+from symgs_core.heap import one_arena
+
 from .celery_app import app
 from .maintenance import Maintenance
 from .settings import get_settings
@@ -36,6 +38,7 @@ def run_worker(mode: str, *, concurrency: int = 1, loglevel: str = "INFO") -> No
     """Consume queue ``mode`` (gpu or cpu) in this process until stopped. A GPU worker runs one job at a time."""
     if mode not in ("gpu", "cpu"):
         raise ValueError(f"mode must be 'gpu' or 'cpu', got {mode!r}")
+    one_arena()  # before this process starts a thread, so that the jobs it forks allocate from one heap
     if mode == "gpu" and concurrency != 1:
         raise ValueError(f"a gpu worker runs one job at a time, got concurrency {concurrency}")
     if mode == "gpu":

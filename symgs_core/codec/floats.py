@@ -96,9 +96,14 @@ class FloatZstd:
         def packed(layout: str) -> bytes:
             return zstd_compress(np.ascontiguousarray(_arrange(flat, layout)), self.level)
 
-        payloads = list(coding_pool().map(packed, LAYOUTS) if flat.size >= PARALLEL_VALUES else map(packed, LAYOUTS))
-        smallest = min(range(len(LAYOUTS)), key=lambda i: len(payloads[i]))  # the first of equals, as in LAYOUTS
-        return EncodedSection(payloads[smallest], flat.nbytes, {"layout": LAYOUTS[smallest]})
+        # Only the smallest payload so far is held: a large section's four payloads together outweigh its values.
+        payloads = coding_pool().map(packed, LAYOUTS) if flat.size >= PARALLEL_VALUES else map(packed, LAYOUTS)
+        best, layout = b"", ""
+        for name, payload in zip(LAYOUTS, payloads):
+            if not layout or len(payload) < len(best):  # the first of equals, as in LAYOUTS
+                best, layout = payload, name
+            del payload
+        return EncodedSection(best, flat.nbytes, {"layout": layout})
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
         check_params(self.name, params, {"layout": LAYOUTS})

@@ -47,8 +47,8 @@ def compress(
     with heap.kept():  # a large scene's arrays, freed and allocated again render after render
         loaded = prepare.load(scene, job)
         viewed = prepare.views(loaded, job)
-        fitted = codec_fit.fit(viewed, job)
-        refined = refine.refine(fitted, job)
+        # The plain fit is passed on, not kept: where the fine-tune replaces it, its rate model would stay alive.
+        refined = refine.refine(codec_fit.fit(viewed, job), job)
         levelled = levels.levels(refined, job)
         encoded = result.encode(levelled, job)
         evaluated = result.evaluate(encoded, job)

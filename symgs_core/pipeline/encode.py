@@ -100,15 +100,22 @@ class Fitted:
     dropped_bands: int = 0  # SH bands left out, over every Gaussian
     tries: list[dict] = field(default_factory=list)
     seconds: float = 0.0
-    rd: RateDistortion | None = None  # the rate model the codec was chosen by (``rate_model``)
+    rd: RateDistortion | None = None  # the rate model the codec was chosen by (``rate_model``); see ``release``
+    classes: Tensor | None = None  # [|unreduced|] int64 step classes the codec chose (None: class 0)
     allowed: float = 0.0  # the growth of the fitting MSE the floor left the codec
     fitting: Fidelity | None = None  # the archive's decode on the fitting views, SSIM too (None: not rendered)
 
     def classes_of(self, kept: Tensor | None = None) -> Tensor | None:
         """Step classes of ``unreduced``'s Gaussians (those of ``kept`` [M] indices, or all), as the codec chose."""
-        if self.rd is None:
+        if self.classes is None:
             return None
-        return self.rd.classes if kept is None else self.rd.classes[kept.to(self.rd.classes.device)]
+        return self.classes if kept is None else self.classes[kept.to(self.classes.device)]
+
+    def release(self) -> None:
+        """Let the rate model go once no level is left to judge: after the levels only its step classes are asked
+        for, and it is the largest thing a fit holds (a sorted copy of the scene, float64 weights, the SH palette's
+        keys: about 1 GB at 1M Gaussians with SH 3), held until the report's own archives are written."""
+        self.rd = None
 
 
 def _without(state: LevelState, keep: Tensor) -> LevelState:
@@ -246,8 +253,8 @@ def fit_codec(
                 steps = rd.steps(choice)
                 best = Fitted(candidate, archive, measured[key].worst, CodecReport(name, steps.report(), floor, 0),
                               steps, codec, choice, state, kept, pruned=pruned,
-                              removed=len(state.stored) - len(stored), dropped_bands=dropped, rd=rd, allowed=allowed,
-                              fitting=measured[key])  # fmt: skip
+                              removed=len(state.stored) - len(stored), dropped_bands=dropped, rd=rd,
+                              classes=rd.classes, allowed=allowed, fitting=measured[key])  # fmt: skip
                 improved = True
             del candidate, stored
         excess = psnr_to_mse(measured[key].worst) - psnr_to_mse(psnr_before)

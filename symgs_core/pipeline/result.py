@@ -63,6 +63,8 @@ def encode(levelled: Levelled, job: Job) -> Encoded:
         fitted = levelled.plain
     else:  # a state resumed from a checkpoint was not judged in this run: judged now, as the levels judge
         fitted = outcome.fitted or replace(codec, floor=outcome.floor)(state, outcome.psnr)
+    for judged in (levelled.plain, fitted):
+        judged.release()
     baseline = fitted_baseline(plain_state, fitted, codec.meta)
     accounted = stages(plain_state, state, fitted, reference=levelled.reference, mirrored_psnr=outcome.psnr,
                        meta=codec.meta, seconds=job.reporter.seconds, baseline=baseline)  # fmt: skip

@@ -81,3 +81,48 @@ def test_a_job_runs_with_the_heap_kept_and_leaves_it_as_it_found_it():
     compress(scene, config=config, progress=lambda *_: seen.append(heap._jobs))
     assert seen and set(seen) == {1}
     assert heap._jobs == 0
+
+
+# The main thread allocates and frees 256 MB in blocks below the mmap threshold (a rung's trial encodes), then two
+# threads do as much at once (the coding pool's layouts), then the main thread again: at most 512 MB are live at
+# any time. The process's peak above its start, in MB.
+ARENAS = r"""
+import sys, threading
+import numpy as np
+from symgs_core import heap
+
+MB = 1 << 20
+
+def peak():
+    return next(int(line.split()[1]) << 10 for line in open("/proc/self/status") if line.startswith("VmHWM"))
+
+def churn(together=None):
+    blocks = [np.ones(16 * MB // 8) for _ in range(16)]
+    if together is not None:
+        together.wait()
+    del blocks
+
+if sys.argv[1] == "glibc":
+    heap.one_arena = lambda: None
+with heap.kept():
+    start = peak()
+    churn()
+    both = threading.Barrier(2)
+    threads = [threading.Thread(target=churn, args=(both,)) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    churn()
+    print((peak() - start) // MB)
+"""
+
+
+@pytest.mark.parametrize("arenas", ["one", "glibc"])
+def test_what_one_thread_of_a_job_freed_serves_another(arenas):
+    """With one arena the threads reuse what the main thread freed, and it theirs: the peak is what was live at
+    once. With glibc's arenas (the oracle that the probe sees the difference) each new thread's arena takes its
+    own memory beside the main heap's freed 256 MB."""
+    done = subprocess.run([sys.executable, "-c", ARENAS, arenas], capture_output=True, text=True, check=True)
+    peak = int(done.stdout)
+    assert peak < 600 if arenas == "one" else peak > 700
