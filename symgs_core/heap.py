@@ -12,8 +12,9 @@ are computed either way; with another C library nothing changes.
 Every thread allocates from the one heap (``one_arena``). glibc gives a thread that allocates while another holds the
 heap an arena of its own, and with nothing trimmed each arena keeps its own high-water mark: what the coding threads
 freed (a section's layouts and their zstd output, a rung's trial encodes) could not serve the main thread, nor what
-it freed (the rate model, after the levels) the coding threads. A trainer-like 1M scene with SH degree 3 peaked at
-4.47 GiB with one arena, against 4.80 to 6.42 GiB over four runs with glibc's arenas, at the same speed.
+it freed (the rate model, after the levels) the coding threads. A trainer-like 1M scene with SH degree 3 (BENCHMARKS,
+"Scale: a scene as a trainer writes it") peaked at 3.7-4.8 GiB over three runs with one arena and at 5.95 GiB with
+glibc's arenas, at the same code and the same bytes; the time changed within the machine's noise.
 """
 
 from __future__ import annotations
