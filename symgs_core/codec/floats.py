@@ -96,13 +96,9 @@ class FloatZstd:
         def packed(layout: str) -> bytes:
             return zstd_compress(np.ascontiguousarray(_arrange(flat, layout)), self.level)
 
-        # Only the smallest payload so far is held: a large section's four payloads together outweigh its values.
+        # min() over the lazy results holds only the smallest so far: four payloads of a large section outweigh it.
         payloads = coding_pool().map(packed, LAYOUTS) if flat.size >= PARALLEL_VALUES else map(packed, LAYOUTS)
-        best, layout = b"", ""
-        for name, payload in zip(LAYOUTS, payloads):
-            if not layout or len(payload) < len(best):  # the first of equals, as in LAYOUTS
-                best, layout = payload, name
-            del payload
+        layout, best = min(zip(LAYOUTS, payloads), key=lambda pair: len(pair[1]))  # the first of equals, as in LAYOUTS
         return EncodedSection(best, flat.nbytes, {"layout": layout})
 
     def check(self, shape: tuple[int, ...], params: dict[str, Any], raw_length: int) -> None:
