@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -128,6 +129,62 @@ def wait_until(child: Child, ready, timeout: float, what: str) -> None:  # noqa:
     raise StackError(f"{child.name} did not {what} within {timeout:.0f} s:\n{child.tail()}")
 
 
+# A port drawn free is bound a moment later by the server started on it; in between another process (a stack started
+# beside this one, a client's outgoing connection) may take it. A server that finds its port taken starts again on
+# another, and a server is ready only once it holds its own port: another stack's would answer there too.
+PORT_TRIES = 4
+
+
+def listens(pid: int, port: int) -> bool:
+    """Whether process ``pid`` holds a socket listening on TCP ``port``, from Linux's /proc (read in the process's
+    own network namespace); where there is no /proc, assumed."""
+    net = Path(f"/proc/{pid}/net")
+    if not net.is_dir():
+        return True
+    inodes = set()
+    for table in ("tcp", "tcp6"):
+        try:
+            rows = (net / table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            cells = row.split()  # sl, local address:port (hex), remote, state (0A: listening), ..., inode
+            if cells[3] == "0A" and int(cells[1].rsplit(":", 1)[1], 16) == port:
+                inodes.add(f"socket:[{cells[9]}]")
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return False
+    for fd in fds:
+        try:
+            if os.readlink(f"/proc/{pid}/fd/{fd}") in inodes:
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def port_taken(child: Child) -> bool:
+    """Whether ``child`` exited for its port was taken (Redis's and uvicorn's words for it)."""
+    return not child.alive() and "address already in use" in child.tail(10).lower()
+
+
+def on_free_port(start: Callable[[int], Child], ready: Callable[[Child, int], bool], timeout: float, what: str,
+                 port: int | None = None) -> Child:  # fmt: skip
+    """``start(port)`` on a free port (or on ``port``), waited on until ``ready(child, port)``; started again on
+    another where its port was taken."""
+    for tries_left in reversed(range(1 if port else PORT_TRIES)):
+        chosen = port or free_port()
+        child = start(chosen)
+        try:
+            wait_until(child, lambda: ready(child, chosen), timeout, what)  # noqa: B023 - called before the loop goes on
+            return child
+        except StackError:
+            if not (tries_left and port_taken(child)):
+                raise
+    raise AssertionError("unreachable: the last try raises")
+
+
 @dataclass
 class LocalStack:
     """Redis, the API and workers on free ports, with storage in a temporary folder unless ``storage`` names one.
@@ -182,20 +239,29 @@ class LocalStack:
     def start_redis(self, timeout: float = 20) -> None:
         """Start Redis: on a free port the first time, on the same port again after ``stop_redis``."""
         binary = self.redis_binary = self.redis_binary or redis_server()
-        port = int(self.redis_url.rsplit(":", 1)[1].split("/")[0]) if self.redis_url else free_port()
+        again = int(self.redis_url.rsplit(":", 1)[1].split("/")[0]) if self.redis_url else None
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)
         aof = ["--appendonly", "yes", "--appendfsync", "always"] if self.durable_redis else ["--appendonly", "no"]
-        argv = [binary, "--port", str(port), "--bind", self.bind, "--dir", str(data), "--save", "", *aof,
-                "--loglevel", "warning"]  # fmt: skip
-        if not self.bind.startswith("127."):
-            argv += ["--protected-mode", "no"]  # reached from other hosts of a private test network
-        child = spawn("redis", argv, env=os.environ.copy(), logs=self.root, wrap=self.wrap)
-        self.children.insert(0, child)  # stopped last
-        self.redis_url = f"redis://{self.host}:{port}/0"
-        client = redis.Redis.from_url(self.redis_url)
-        wait_until(child, client.ping, timeout, "answer PING")
-        client.close()
+
+        def start(port: int) -> Child:
+            argv = [binary, "--port", str(port), "--bind", self.bind, "--dir", str(data), "--save", "", *aof,
+                    "--loglevel", "warning"]  # fmt: skip
+            if not self.bind.startswith("127."):
+                argv += ["--protected-mode", "no"]  # reached from other hosts of a private test network
+            child = spawn("redis", argv, env=os.environ.copy(), logs=self.root, wrap=self.wrap)
+            self.children.insert(0, child)  # stopped last
+            self.redis_url = f"redis://{self.host}:{port}/0"
+            return child
+
+        def ready(child: Child, port: int) -> bool:
+            client = redis.Redis.from_url(self.redis_url)
+            try:
+                return bool(client.ping()) and listens(child.popen.pid, port)
+            finally:
+                client.close()
+
+        on_free_port(start, ready, timeout, "answer PING", again)  # a restart keeps the port its clients know
 
     def stop_redis(self, *, kill: bool = False) -> None:
         """Stop Redis (SIGKILL with ``kill``: a crash); ``start_redis`` brings it back on the same port."""
@@ -207,11 +273,16 @@ class LocalStack:
             self.children.remove(child)
 
     def start_api(self, timeout: float = 30, *, env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
-        port = free_port()
-        argv = [*SYMGS, "serve", "--host", self.bind, "--port", str(port)]
-        child = self.spawn("api", argv, env=self.child_env(env), cwd=cwd, wrap=self.wrap)
-        self.api_url = f"http://{self.host}:{port}"
-        wait_until(child, lambda: httpx.get(f"{self.api_url}/healthz", timeout=2).status_code == 200, timeout, "serve")
+        def start(port: int) -> Child:
+            argv = [*SYMGS, "serve", "--host", self.bind, "--port", str(port)]
+            self.api_url = f"http://{self.host}:{port}"
+            return self.spawn("api", argv, env=self.child_env(env), cwd=cwd, wrap=self.wrap)
+
+        def ready(child: Child, port: int) -> bool:
+            answer = httpx.get(f"{self.api_url}/healthz", timeout=2)
+            return answer.status_code == 200 and listens(child.popen.pid, port)
+
+        on_free_port(start, ready, timeout, "serve")
 
     def start_worker(
         self,
