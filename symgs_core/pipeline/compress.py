@@ -16,7 +16,7 @@ from ..devices import resolve_device
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
 from . import codec_fit, levels, prepare, refine, result
-from .job import Job, Reporter
+from .job import Job, Reporter, stage_shares
 from .result import CompressResult
 
 
@@ -40,7 +40,8 @@ def compress(
     config = config or CompressConfig.for_preset()
     if not isinstance(config, CompressConfig):
         raise TypeError(f"config must be a CompressConfig, e.g. CompressConfig.for_preset('small'), got {config!r}")
-    job = Job(config, resolve_device(config.device), Reporter(progress, should_stop),
+    shares = stage_shares(config, photographs=images is not None)
+    job = Job(config, resolve_device(config.device), Reporter(progress, should_stop, shares),
               Path(images) if images is not None else None,
               Path(checkpoint_dir) if checkpoint_dir is not None else None, charts)  # fmt: skip
     torch.manual_seed(config.seed)

@@ -14,30 +14,58 @@ from ..config import PRESETS, CompressConfig, PresetSpec
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from .checkpoint import settings_digest
 
-# Share of the job's progress bar each stage takes; the mirror levels share theirs.
-STAGE_SHARES = {
-    "load": (0.0, 0.02),
-    "views": (0.02, 0.06),
-    "codec": (0.06, 0.35),
-    "refine": (0.35, 0.45),
-    "levels": (0.45, 0.88),
-    "encode": (0.88, 0.93),
-    "evaluate": (0.93, 1.0),
-}
+# Seconds per million Gaussians each stage takes on 2 cores (BENCHMARKS "Scale": the default preset at 1M on the Xeon
+# host, and the preset that fits nothing; a fine-tune's step on the training photographs: 60 photographs at 800 px and
+# 1M Gaussians there). The progress bar gives each stage a share in proportion to its time, so that the bar's pace,
+# from which the time left is estimated (``progress.Eta``), holds from stage to stage: with one set of shares for
+# every job, one with photographs at 250k spent a tenth of the bar on a fine-tune that took 10 minutes, and its
+# estimate swung from an hour to 18 hours and back as detection and the next fine-tune followed.
+STAGE_SECONDS = {"load": 0.5, "views": 0.2, "codec": 134.0, "encode": 31.0, "evaluate": 7.0}
+FIXED_SECONDS = {"codec": 10.0, "encode": 11.0}  # a preset that fits nothing: one encode, no stage archives
+STEP_SECONDS = 1.0  # one step of a fine-tune on the training photographs
+LEVEL_SECONDS = 38.0  # one mirror level's detection and its memberships' first renders
+STAGES = ("load", "views", "codec", "refine", "levels", "encode", "evaluate")
+
+
+def stage_shares(config: CompressConfig, photographs: bool) -> dict[str, tuple[float, float]]:
+    """Each stage's share (start, end) of the job's bar, in proportion to the time it takes (``STAGE_SECONDS``); a
+    stage the job skips has none. The levels' share is twice a level's time: the first level takes half of it
+    (``level_share``)."""
+    fitted = PRESETS[config.preset].fitted
+    seconds = dict(STAGE_SECONDS) if fitted else {**STAGE_SECONDS, **FIXED_SECONDS}
+    tuning = STEP_SECONDS * config.iterations if photographs and fitted else 0.0
+    seconds["refine"] = tuning if config.quantized else 0.0
+    level = LEVEL_SECONDS + (tuning + seconds["codec"] if tuning else 0.0)
+    seconds["levels"] = 2.0 * level if config.use_mirrors and config.max_levels and fitted else 0.0
+    total, start, shares = sum(seconds.values()), 0.0, {}
+    for stage in STAGES:
+        end = min(start + seconds[stage] / total, 1.0)
+        shares[stage], start = (start, end), end
+    return shares
+
+
+def level_share(level: int, within: float) -> float:
+    """Where ``within`` (0..1) of mirror level ``level`` lies on the levels' share of the bar: each level takes half
+    of what the levels before it left, for a job seldom tries as many levels as it may, and the bar never moves
+    back."""
+    return 1.0 - 0.5**level * (1.0 - 0.5 * min(max(within, 0.0), 1.0))
 
 
 class Reporter:
-    """Progress events on the job's bar, the cancellation check before each, and the seconds per stage."""
+    """Progress events on the job's bar (``shares``: each stage's, by default the default preset's without
+    photographs), the cancellation check before each, and the seconds per stage."""
 
-    def __init__(self, progress: ProgressFn | None, should_stop: StopFn | None) -> None:
+    def __init__(self, progress: ProgressFn | None, should_stop: StopFn | None,
+                 shares: dict[str, tuple[float, float]] | None = None) -> None:  # fmt: skip
         self.progress, self.should_stop = progress, should_stop
+        self.shares = shares or stage_shares(CompressConfig.for_preset(), photographs=False)
         self.seconds: dict[str, float] = {}
         self.reached = 0.0  # the bar never moves back, though a stage may run its steps twice (mirrors on and off)
 
     def __call__(self, stage: str, within: float, message: str, level: int | None = None) -> None:
         if self.should_stop is not None and self.should_stop():
             raise Cancelled()
-        lo, hi = STAGE_SHARES[stage]
+        lo, hi = self.shares[stage]
         if self.progress is not None:
             self.reached = max(self.reached, lo + (hi - lo) * min(max(within, 0.0), 1.0))
             self.progress(ProgressEvent(stage, level, self.reached, message))

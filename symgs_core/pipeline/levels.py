@@ -31,7 +31,7 @@ from ..views import ViewSet, evaluate, worst_psnr
 from .checkpoint import Checkpoint, load_checkpoint, save_checkpoint, scene_fingerprint
 from .encode import Fitted, Rate, rate_model
 from .gating import colour_mismatch, gated
-from .job import Job, Reporter, grown
+from .job import Job, Reporter, grown, level_share
 from .optimize import halo, optimize_level
 from .pace import Pace, Stretches
 from .refine import Refined
@@ -264,18 +264,21 @@ def tune(
     steps: QuantSteps | None,
     report: Reporter,
     pace: Pace | None = None,
+    span: tuple[float, float] = (0.0, 1.0),
 ) -> tuple[LevelState, float, int, bool]:
     """Fine-tune what ``membership`` changed in ``candidate`` (its left side and the neighbours of both sides, and
     the new plane) in stretches while they gain and, with ``pace``, while it says the level may still pay; returns
     the tuned state, its fitting PSNR, the steps run and whether ``pace`` stopped it. ``start``: ``candidate``'s
-    fitting PSNR, as the plan rendered it (``Attempt.psnr_before``, exact for every membership it lets run)."""
+    fitting PSNR, as the plan rendered it (``Attempt.psnr_before``, exact for every membership it lets run);
+    ``span``: the part of the levels' share of the bar its steps move across."""
     region = torch.cat([membership.left, membership.right])
     trainable = halo(state.stored, region, candidate.stored, radius=HALO_SPACINGS * spacing)
     stretches = Stretches(views, start, config.iterations, pace)
+    lo, hi = span
 
     def on_step(step: int, loss: Tensor) -> None:
         if step % 10 == 0:
-            report("levels", (level + step / max(config.iterations, 1)) / max(config.max_levels, 1),
+            report("levels", lo + (hi - lo) * step / max(config.iterations, 1),
                    f"level {level}: step {step}/{config.iterations} loss {float(loss):.4f}", level)  # fmt: skip
 
     torch.manual_seed(config.seed + 1000 * (level + 1))
@@ -379,7 +382,7 @@ def run_levels(
     spacing = _spacing(source.means) if config.max_levels else math.inf
     while not done and state.normals.shape[0] < config.max_levels:
         level = state.normals.shape[0]
-        report("levels", level / config.max_levels, f"level {level}: detecting mirrors", level)
+        report("levels", level_share(level, 0.0), f"level {level}: detecting mirrors", level)
         done = True
         # With photographs, the ball their cameras look at is searched first; where the mirror found there does not
         # pay, the whole scene's (the object's with its surroundings, or a table's, a room's) is tried before the
@@ -393,9 +396,12 @@ def run_levels(
             options = memberships(state, mirrors[0]) if mirrors else []
             attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate,
                                      best_bytes=best_bytes, photographs=math.isfinite(reference))  # fmt: skip
-            for attempt in attempts:
+            for trial, attempt in enumerate(attempts):
+                # the level's trials share its part of the bar, each a fine-tune and then its archive's encode
+                span = (level_share(level, trial / len(attempts)), level_share(level, (trial + 0.9) / len(attempts)))
                 record, tuned, judged = _try(attempt, state, psnr, best_bytes, search=search, config=config,
-                                             judge=judge, report=report, level=level, spacing=spacing)  # fmt: skip
+                                             judge=judge, report=report, level=level, span=span,
+                                             spacing=spacing)  # fmt: skip
                 records.append(record)
                 if record.accepted:
                     assert record.archive_bytes is not None  # only a judged level is accepted
@@ -421,6 +427,7 @@ def _try(
     judge: Judge,
     report: Reporter,
     level: int,
+    span: tuple[float, float],
     spacing: float,
 ) -> tuple[LevelReport, LevelState, Fitted | None]:
     """One membership applied to ``state`` (fitting PSNR ``psnr``), fine-tuned unless the plan says it cannot pay or
@@ -440,7 +447,7 @@ def _try(
             pace = Pace(floor, search.rate, psnr, best_bytes * share, best_bytes)
         tuned, psnr_after, run, cut = tune(state, candidate, membership, views, start=psnr_before, level=level,
                                            config=config, extent=search.extent, spacing=spacing,
-                                           steps=search.steps, report=report, pace=pace)  # fmt: skip
+                                           steps=search.steps, report=report, pace=pace, span=span)  # fmt: skip
     report.timed("optimize", time.perf_counter() - t0)
     archive_bytes, judged = None, None
     if skipped:
@@ -454,7 +461,7 @@ def _try(
         accepted, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
     else:
         t1 = time.perf_counter()
-        report("levels", (level + 1) / config.max_levels, f"level {level}: encoding to compare", level)
+        report("levels", span[1], f"level {level}: encoding to compare", level)
         judged = judge(tuned, psnr_after)
         archive_bytes = len(judged.archive)
         report.timed("judge", time.perf_counter() - t1)
@@ -505,7 +512,13 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     _, radius = scene_bounds(fitted.source.means.detach().cpu(), fitted.source.scales)
     floor = held_floor(fitted.floor, plain, photographs=job.photographs)
     search = LevelSearch(
-        fitted.source, fitted.views, floor, fitted.reference, radius, len(plain.archive), plain.steps,
+        fitted.source,
+        fitted.views,
+        floor,
+        fitted.reference,
+        radius,
+        len(plain.archive),
+        plain.steps,
         rate_model(plain, floor) if plain.rd is not None else None,
         fitted.upload if fitted.upload is not fitted.source else None,
         # Photographs were taken by someone pointing at what they meant: their cameras frame the object.
