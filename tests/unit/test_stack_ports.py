@@ -47,9 +47,10 @@ def test_a_server_whose_port_another_stack_took_starts_again_on_another(
 ) -> None:
     taken = [port_of(first.redis_url), port_of(first.api_url)]
     drawn: list[int] = []
+    free_port = stack_module.free_port
 
     def draw() -> int:  # the other stack's port first, as a collision would give it
-        port = taken.pop(0) if len(drawn) in (0, 2) else socket_port()
+        port = taken.pop(0) if len(drawn) in (0, 2) else free_port()
         drawn.append(port)
         return port
 
@@ -72,8 +73,3 @@ def test_a_server_whose_port_another_stack_took_starts_again_on_another(
     finally:
         second.cleanup()
 
-
-def socket_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
