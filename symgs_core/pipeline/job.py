@@ -24,6 +24,9 @@ STAGE_SECONDS = {"load": 0.5, "views": 0.2, "codec": 134.0, "encode": 31.0, "eva
 FIXED_SECONDS = {"codec": 10.0, "encode": 11.0}  # a preset that fits nothing: one encode, no stage archives
 STEP_SECONDS = 1.0  # one step of a fine-tune on the training photographs
 LEVEL_SECONDS = 38.0  # one mirror level's detection and its memberships' first renders
+# The part of a fine-tune's share that its steps take, the encode that judges it the rest: 1,600 steps take about ten
+# times one encode's time.
+TUNE_SHARE = 0.9
 STAGES = ("load", "views", "codec", "refine", "levels", "encode", "evaluate")
 
 

@@ -29,9 +29,9 @@ from ..report import LevelReport
 from ..scene import GaussianScene
 from ..views import ViewSet, evaluate, worst_psnr
 from .checkpoint import Checkpoint, load_checkpoint, save_checkpoint, scene_fingerprint
-from .encode import Fitted, Rate, rate_model
+from .encode import FitProgress, Fitted, Rate, rate_model
 from .gating import colour_mismatch, gated
-from .job import Job, Reporter, grown, level_share
+from .job import TUNE_SHARE, Job, Reporter, grown, level_share
 from .optimize import halo, optimize_level
 from .pace import Pace, Stretches
 from .refine import Refined
@@ -247,7 +247,7 @@ def hopeless(psnr_before: float, floor: float) -> bool:
     return psnr_before < floor - TUNE_GAIN
 
 
-Judge = Callable[[LevelState, float], Fitted]  # (state, its fitting PSNR) -> its archive at the floor
+Judge = Callable[[LevelState, float, FitProgress | None], Fitted]  # (state, its fitting PSNR, progress) -> archive
 
 
 def tune(
@@ -397,8 +397,7 @@ def run_levels(
             attempts = plan_attempts(state, psnr, options, views, floor=floor, rate=search.rate,
                                      best_bytes=best_bytes, photographs=math.isfinite(reference))  # fmt: skip
             for trial, attempt in enumerate(attempts):
-                # the level's trials share its part of the bar, each a fine-tune and then its archive's encode
-                span = (level_share(level, trial / len(attempts)), level_share(level, (trial + 0.9) / len(attempts)))
+                span = (level_share(level, trial / len(attempts)), level_share(level, (trial + 1) / len(attempts)))
                 record, tuned, judged = _try(attempt, state, psnr, best_bytes, search=search, config=config,
                                              judge=judge, report=report, level=level, span=span,
                                              spacing=spacing)  # fmt: skip
@@ -432,9 +431,10 @@ def _try(
 ) -> tuple[LevelReport, LevelState, Fitted | None]:
     """One membership applied to ``state`` (fitting PSNR ``psnr``), fine-tuned unless the plan says it cannot pay or
     need not, and judged by its archive against ``best_bytes``: its record, the state it leaves and its archive (None
-    where not judged)."""
+    where not judged). ``span``: its part of the levels' share of the bar, most of it the fine-tune's."""
     floor, views = search.floor, search.views
     membership, psnr_before = attempt.membership, attempt.psnr_before
+    tuning = (span[0], span[0] + TUNE_SHARE * (span[1] - span[0]))
     t0 = time.perf_counter()
     candidate = apply_mirror(state, membership.plane, membership.left, membership.right)
     skipped, cut = not attempt.pays(floor, best_bytes), False
@@ -447,7 +447,7 @@ def _try(
             pace = Pace(floor, search.rate, psnr, best_bytes * share, best_bytes)
         tuned, psnr_after, run, cut = tune(state, candidate, membership, views, start=psnr_before, level=level,
                                            config=config, extent=search.extent, spacing=spacing,
-                                           steps=search.steps, report=report, pace=pace, span=span)  # fmt: skip
+                                           steps=search.steps, report=report, pace=pace, span=tuning)  # fmt: skip
     report.timed("optimize", time.perf_counter() - t0)
     archive_bytes, judged = None, None
     if skipped:
@@ -461,8 +461,13 @@ def _try(
         accepted, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
     else:
         t1 = time.perf_counter()
-        report("levels", span[1], f"level {level}: encoding to compare", level)
-        judged = judge(tuned, psnr_after)
+        report("levels", tuning[1], f"level {level}: encoding to compare", level)
+
+        def encoding(within: float, message: str) -> None:
+            at = tuning[1] + (span[1] - tuning[1]) * within
+            report("levels", at, f"level {level}: encoding to compare: {message}", level)
+
+        judged = judge(tuned, psnr_after, encoding)
         archive_bytes = len(judged.archive)
         report.timed("judge", time.perf_counter() - t1)
         accepted = archive_bytes < best_bytes

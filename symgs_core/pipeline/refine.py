@@ -25,7 +25,7 @@ from ..scene import GaussianScene
 from .checkpoint import load_refined, save_refined, scene_fingerprint
 from .codec_fit import CodecFitted
 from .encode import Fitted, rate_model
-from .job import Job, grown
+from .job import TUNE_SHARE, Job, grown
 from .optimize import optimize_level
 from .pace import MIN_GAIN_DB, Pace, Stretches
 from .state import LevelState
@@ -60,8 +60,13 @@ def refine(fitted: CodecFitted, job: Job) -> Refined:
         kept, after = False, None
         reason = f"{steps} steps gained {gained:+.2f} dB on the fitting photographs: the upload is coded as it came"
     else:
-        job.reporter("refine", 0.9, "encoding the fine-tuned scene to compare")
-        judged = fitted.codec(LevelState.plain(tuned), psnr)
+        job.reporter("refine", TUNE_SHARE, "encoding the fine-tuned scene to compare")
+
+        def encoding(within: float, message: str) -> None:
+            job.reporter("refine", TUNE_SHARE + (1.0 - TUNE_SHARE) * within,
+                         f"encoding the fine-tuned scene to compare: {message}")  # fmt: skip
+
+        judged = fitted.codec(LevelState.plain(tuned), psnr, encoding)
         after = len(judged.archive)
         kept = after < len(plain.archive)
         reason = (f"{steps} steps gained {gained:+.2f} dB on the fitting photographs; its archive is {after:,} "
@@ -97,7 +102,7 @@ def _fine_tune(fitted: CodecFitted, job: Job) -> tuple[GaussianScene, float, int
 
     def on_step(step: int, loss: Tensor) -> None:
         if step % 10 == 0:
-            job.reporter("refine", step / max(config.iterations, 1),
+            job.reporter("refine", TUNE_SHARE * step / max(config.iterations, 1),
                          f"fine-tuning the upload on its photographs: step {step}/{config.iterations} "
                          f"loss {float(loss):.4f}")  # fmt: skip
 

@@ -19,7 +19,7 @@ from symgs_core.detect import DetectConfig, detect
 from symgs_core.pipeline import compress, decompress, result
 from symgs_core.pipeline.budget import RateDistortion
 from symgs_core.pipeline.encode import Fitted, Rate
-from symgs_core.pipeline.job import Reporter
+from symgs_core.pipeline.job import Reporter, stage_shares
 from symgs_core.pipeline.levels import SETTLED_COST, LevelSearch, memberships, run_levels
 from symgs_core.pipeline.state import LevelState
 from symgs_core.progress import Cancelled
@@ -123,8 +123,8 @@ def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
     judged = []
 
     def run(bytes_of):  # noqa: ANN001, ANN202
-        return _levels(scene, views, config, lambda st, p: judged.append(len(st.stored)) or _archive_of(bytes_of(st)),
-                       floor=30.0)
+        judge = lambda st, p, _: judged.append(len(st.stored)) or _archive_of(bytes_of(st))  # noqa: E731
+        return _levels(scene, views, config, judge, floor=30.0)
 
     state, psnr, records = run(lambda st: 10_000)  # no smaller than the plain codec's
     assert judged and state.normals.shape[0] == 0 and math.isinf(psnr)
@@ -132,6 +132,35 @@ def test_a_level_is_kept_only_when_the_archive_with_it_is_smaller(symmetric):
     assert records[0].archive_bytes == 10_000
     state, _, records = run(lambda st: 9_000 - st.normals.shape[0])  # each level shrinks it
     assert records[0].accepted and state.normals.shape[0] >= 1 and "shrinks" in records[0].reason
+
+
+def test_the_levels_move_the_bar_through_each_fine_tune_and_its_encode(symmetric):
+    """The progress bar passes through each level's fine-tune, then the encode that judges it (the judge's own
+    progress), and the first level fills half of the levels' share: a job's time left follows every part of it."""
+    scene = symmetric.scene
+    views = self_supervised_views(scene, train=4, fit=2, eval=2, resolution=48, eval_resolution=48,
+                                  background=torch.zeros(3))  # fmt: skip
+    config = replace(FAST, max_levels=2, iterations=20)
+    shares = stage_shares(config, photographs=False)
+    events = []
+
+    def judge(state, psnr, progress):  # noqa: ANN001, ANN202
+        progress(0.5, "half way")
+        return _archive_of(9_000 - state.normals.shape[0])  # each level shrinks it
+
+    search = LevelSearch(scene, views, 30.0, math.inf, 1.0, 10_000, None, None)
+    outcome = run_levels(search, config=config, judge=judge, report=Reporter(events.append, None, shares),
+                         checkpoint=None)  # fmt: skip
+    assert [r.accepted for r in outcome.records][:1] == [True]
+    lo, hi = shares["levels"]
+    at = {e.message: e.fraction for e in events}
+    fractions = [e.fraction for e in events]
+    assert fractions == sorted(fractions) and lo <= fractions[0] and fractions[-1] == pytest.approx(hi)
+    assert at["level 0: detecting mirrors"] == pytest.approx(lo)
+    steps = [e.fraction for e in events if e.message.startswith("level 0: step")]
+    assert steps and at["level 0: detecting mirrors"] <= steps[0] <= steps[-1] < at["level 0: encoding to compare"]
+    assert at["level 0: encoding to compare"] < at["level 0: encoding to compare: half way"] < (lo + hi) / 2
+    assert at["level 1: detecting mirrors"] == pytest.approx((lo + hi) / 2)
 
 
 def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_judged(symmetric):
@@ -144,7 +173,7 @@ def test_a_membership_the_rate_model_says_cannot_pay_is_neither_fine_tuned_nor_j
     judged, priced = [], []
 
     def run(ratio):  # noqa: ANN001, ANN202
-        return _levels(scene, views, config, lambda st, p: judged.append(p) or _archive_of(9_000), floor=30.0,
+        return _levels(scene, views, config, lambda st, p, _: judged.append(p) or _archive_of(9_000), floor=30.0,
                        rate=Rate(lambda before, after: priced.append((before, after)) or ratio))
 
     state, _, records = run(3.0)  # a third of the scene dropped, three times the bytes per Gaussian: no
@@ -165,7 +194,7 @@ def test_a_membership_that_costs_the_codec_almost_nothing_is_judged_without_a_fi
     config = replace(FAST, max_levels=1, iterations=4)
 
     def run(cost, reference=math.inf):  # noqa: ANN001, ANN202
-        return _levels(scene, views, config, lambda st, p: _archive_of(9_000), floor=20.0, reference=reference,
+        return _levels(scene, views, config, lambda st, p, _: _archive_of(9_000), floor=20.0, reference=reference,
                        rate=Rate(lambda before, after: 1.0 + cost))
 
     _, _, records = run(SETTLED_COST / 2)
