@@ -6,13 +6,16 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from functools import cached_property
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import torch
 
 from ..config import PRESETS, CompressConfig, PresetSpec
 from ..progress import Cancelled, ProgressEvent, ProgressFn, StopFn
 from .checkpoint import settings_digest
+
+if TYPE_CHECKING:
+    from .encode import FitProgress
 
 # Seconds per million Gaussians each stage takes on 2 cores (BENCHMARKS "Scale": the default preset at 1M on the Xeon
 # host, and the preset that fits nothing; a fine-tune's step on the training photographs: 60 photographs at 800 px and
@@ -72,6 +75,12 @@ class Reporter:
         if self.progress is not None:
             self.reached = max(self.reached, lo + (hi - lo) * min(max(within, 0.0), 1.0))
             self.progress(ProgressEvent(stage, level, self.reached, message))
+
+    def part(self, stage: str, lo: float, hi: float, what: str, level: int | None = None) -> FitProgress:
+        """Report ``what`` at ``lo`` of ``stage``'s share; the progress of a step that runs from there to ``hi`` (a
+        codec fit's, 0..1 of it), its messages under ``what``."""
+        self(stage, lo, what, level)
+        return lambda within, message: self(stage, lo + (hi - lo) * within, f"{what}: {message}", level)
 
     def timed(self, stage: str, seconds: float) -> None:
         self.seconds[stage] = self.seconds.get(stage, 0.0) + seconds

@@ -461,12 +461,7 @@ def _try(
         accepted, reason = False, f"fitting PSNR {psnr_after:.2f} dB below the floor {floor:.2f} dB"
     else:
         t1 = time.perf_counter()
-        report("levels", tuning[1], f"level {level}: encoding to compare", level)
-
-        def encoding(within: float, message: str) -> None:
-            at = tuning[1] + (span[1] - tuning[1]) * within
-            report("levels", at, f"level {level}: encoding to compare: {message}", level)
-
+        encoding = report.part("levels", tuning[1], span[1], f"level {level}: encoding to compare", level)
         judged = judge(tuned, psnr_after, encoding)
         archive_bytes = len(judged.archive)
         report.timed("judge", time.perf_counter() - t1)
@@ -517,13 +512,7 @@ def levels(fitted: Refined, job: Job) -> Levelled:
     _, radius = scene_bounds(fitted.source.means.detach().cpu(), fitted.source.scales)
     floor = held_floor(fitted.floor, plain, photographs=job.photographs)
     search = LevelSearch(
-        fitted.source,
-        fitted.views,
-        floor,
-        fitted.reference,
-        radius,
-        len(plain.archive),
-        plain.steps,
+        fitted.source, fitted.views, floor, fitted.reference, radius, len(plain.archive), plain.steps,
         rate_model(plain, floor) if plain.rd is not None else None,
         fitted.upload if fitted.upload is not fitted.source else None,
         # Photographs were taken by someone pointing at what they meant: their cameras frame the object.

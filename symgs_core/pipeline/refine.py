@@ -60,12 +60,7 @@ def refine(fitted: CodecFitted, job: Job) -> Refined:
         kept, after = False, None
         reason = f"{steps} steps gained {gained:+.2f} dB on the fitting photographs: the upload is coded as it came"
     else:
-        job.reporter("refine", TUNE_SHARE, "encoding the fine-tuned scene to compare")
-
-        def encoding(within: float, message: str) -> None:
-            job.reporter("refine", TUNE_SHARE + (1.0 - TUNE_SHARE) * within,
-                         f"encoding the fine-tuned scene to compare: {message}")  # fmt: skip
-
+        encoding = job.reporter.part("refine", TUNE_SHARE, 1.0, "encoding the fine-tuned scene to compare")
         judged = fitted.codec(LevelState.plain(tuned), psnr, encoding)
         after = len(judged.archive)
         kept = after < len(plain.archive)
